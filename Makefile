@@ -1,0 +1,46 @@
+# The two commands of the README: `make demo` and `make test`.
+# Each creates or refreshes the virtual environment itself, installs system
+# packages when running as root (or prints the command to run), then runs.
+
+PYTHON ?= python3.11
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+SYSPKG := libusb-1.0-0 libgomp1
+
+.PHONY: demo test test-all bench setup system-packages clean
+
+demo: setup
+	$(PY) -m phirie_jax.cli demo --out out/demo
+
+test: setup
+	$(PY) -m pytest -n auto -q
+
+test-all: setup
+	$(PY) -m pytest -n auto -q -m ''
+
+setup: system-packages $(STAMP)
+
+# open3d needs libusb at import time. As root (CI) install it; otherwise say how.
+system-packages:
+	@missing=""; for p in $(SYSPKG); do \
+	  dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing system packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else \
+	    echo "missing system packages:$$missing"; \
+	    echo "run: sudo apt-get update && sudo apt-get install -y$$missing"; exit 1; \
+	  fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null || { echo "needs $(PYTHON) (Python >= 3.11) on PATH"; exit 1; }
+	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) out .pytest_cache
