@@ -136,6 +136,7 @@ class _Header:
     properties: tuple[tuple[str, str], ...]  # vertex (name, type token)
     comments: tuple[str, ...]
     data_offset: int
+    element_counts: tuple[tuple[str, int], ...]  # every element, in file order
 
 
 def _read_header(path: Path, raw: bytes) -> _Header:
@@ -184,7 +185,8 @@ def _read_header(path: Path, raw: bytes) -> _Header:
         if token == "list":
             raise SceneInputError(path, f"vertex property '{name}'",
                                   "list properties are not Gaussian fields (expected scalars)")
-    return _Header(fmt, count, tuple(props), tuple(comments), newline + 1)
+    counts = tuple((name, n) for name, n, _ in elements)
+    return _Header(fmt, count, tuple(props), tuple(comments), newline + 1, counts)
 
 
 def read_ply_header_properties(path: str | Path) -> list[str]:
@@ -193,6 +195,14 @@ def read_ply_header_properties(path: str | Path) -> list[str]:
     with open(path, "rb") as f:
         raw = f.read(65536)
     return [name for name, _ in _read_header(path, raw).properties]
+
+
+def ply_element_counts(path: str | Path) -> dict[str, int]:
+    """Element name → count from the header alone (e.g. a mesh's vertices and faces)."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        raw = f.read(65536)
+    return dict(_read_header(path, raw).element_counts)
 
 
 def is_gaussian_ply(path: str | Path) -> bool:

@@ -1,0 +1,84 @@
+"""What a scene folder holds, as a dict of facts (``phirie info``)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from phirie_jax.errors import SceneInputError
+from phirie_jax.io.ply import ply_element_counts
+from phirie_jax.io.scene import SceneInput
+
+
+def _relative(path: Path | None, root: Path) -> str | None:
+    if path is None:
+        return None
+    try:
+        return str(path.relative_to(root))
+    except ValueError:
+        return str(path)
+
+
+def _mesh_facts(path: Path) -> dict:
+    facts = {"path": str(path), "bytes": path.stat().st_size}
+    if path.suffix.lower() == ".ply":
+        try:
+            counts = ply_element_counts(path)
+            facts.update(vertices=counts.get("vertex"), faces=counts.get("face"))
+        except SceneInputError as err:
+            facts["problem"] = str(err)
+    return facts
+
+
+def scene_facts(scene: SceneInput) -> dict:
+    """A JSON-ready summary: layout, Gaussians, cameras, images, surface, masks, candidates, bounds."""
+    facts: dict = {"root": str(scene.root), "layout": scene.layout}
+    g = scene.gaussians
+    if g is None:
+        facts["gaussians"] = None
+    else:
+        facts["gaussians"] = {
+            "path": _relative(scene.gaussians_path, scene.root),
+            "count": g.num,
+            "sh_degree": g.sh_degree,
+            "extra_properties": list(g.extra),
+            "mean_opacity": round(float(np.mean(1.0 / (1.0 + np.exp(-g.opacity_logits)))), 4)
+            if g.num else None,
+        }
+    cams = scene.cameras
+    if cams:
+        sizes = Counter(f"{c.width}x{c.height}" for c in cams)
+        focal = np.array([[c.K[0, 0], c.K[1, 1]] for c in cams])
+        facts["cameras"] = {
+            "source": _relative(scene.camera_source, scene.root),
+            "count": len(cams),
+            "models": dict(Counter(c.model for c in cams)),
+            "distorted": sum(c.is_distorted for c in cams),
+            "image_sizes": dict(sizes),
+            "focal_px": [float(focal.min()), float(focal.max())],
+            "first": cams[0].name,
+            "last": cams[-1].name,
+        }
+        folders = Counter(str(c.image_path.parent) for c in cams if c.image_path)
+        facts["images"] = {"folders": [_relative(Path(f), scene.root) for f in folders], "count": len(cams)}
+    else:
+        facts["cameras"] = None
+    if scene.sparse_points is not None:
+        facts["sparse_points"] = int(len(scene.sparse_points))
+    facts["surface_mesh"] = _mesh_facts(scene.surface_mesh) if scene.surface_mesh else None
+    if scene.surface_mesh is not None:
+        facts["surface_mesh"]["path"] = _relative(scene.surface_mesh, scene.root)
+    facts["masks"] = (
+        None if scene.masks is None
+        else {"found": sum(m is not None for m in scene.masks), "cameras": len(scene.masks)}
+    )
+    facts["candidates"] = {
+        str(i): [{"name": c.name, "mesh": _relative(c.mesh, scene.root),
+                  "gaussians": _relative(c.gaussians, scene.root)} for c in entries]
+        for i, entries in scene.candidates.items()
+    } or None
+    bounds = scene.bounds()
+    facts["bounds"] = None if bounds is None else [[round(float(v), 4) for v in row] for row in bounds]
+    return facts
