@@ -120,25 +120,29 @@ _ROT_DIRS, _ROT_INVERSES = _build_rotation_tables()
 
 
 def sh_band_rotation(rotation, band: int):
-    """(2l+1, 2l+1) matrix W with c'_l = W c_l for coefficients rotated by ``rotation`` (3, 3)."""
+    """(..., 2l+1, 2l+1) matrices W with c'_l = W c_l, for rotations (..., 3, 3)."""
+    xp = np if isinstance(rotation, np.ndarray) else jnp
     lo, hi = band * band, (band + 1) ** 2
-    dirs = jnp.asarray(_ROT_DIRS[band - 1], dtype=rotation.dtype)
-    inv = jnp.asarray(_ROT_INVERSES[band - 1], dtype=rotation.dtype)
-    rotated = sh_basis(dirs @ rotation, band)[:, lo:hi]  # rows y_l(Rᵀ d_k)
+    dirs = xp.asarray(_ROT_DIRS[band - 1], dtype=rotation.dtype)
+    inv = xp.asarray(_ROT_INVERSES[band - 1], dtype=rotation.dtype)
+    rotated = sh_basis(dirs @ rotation, band)[..., lo:hi]  # rows y_l(Rᵀ d_k)
     return inv @ rotated
 
 
 def rotate_sh(coeffs, rotation):
     """Coefficients of the same radiance field rotated by ``rotation``.
 
-    coeffs: (..., K, 3); rotation: (3, 3) proper rotation. The result satisfies
-    eval_sh(rotate_sh(c, R), d) = eval_sh(c, Rᵀ d): the colour seen along d after an
-    object rotates by R is the colour it showed along Rᵀ d before.
+    coeffs: (..., K, 3); rotation: (3, 3) or (..., 3, 3) proper rotations broadcasting
+    against the leading dimensions of ``coeffs``. NumPy in → NumPy out. The result
+    satisfies eval_sh(rotate_sh(c, R), d) = eval_sh(c, Rᵀ d): the colour seen along d
+    after an object rotates by R is the colour it showed along Rᵀ d before.
     """
+    xp = np if isinstance(coeffs, np.ndarray) and isinstance(rotation, np.ndarray) else jnp
     degree = sh_degree_from_coeffs(coeffs.shape[-2])
-    bands = [coeffs[..., :1, :]]
+    bands = [xp.broadcast_to(coeffs[..., :1, :], np.broadcast_shapes(
+        coeffs.shape[:-2], rotation.shape[:-2]) + (1, 3))]
     for band in range(1, degree + 1):
         lo, hi = band * band, (band + 1) ** 2
         w = sh_band_rotation(rotation, band).astype(coeffs.dtype)
-        bands.append(jnp.einsum("ij,...jc->...ic", w, coeffs[..., lo:hi, :]))
-    return jnp.concatenate(bands, axis=-2)
+        bands.append(xp.einsum("...ij,...jc->...ic", w, coeffs[..., lo:hi, :]))
+    return xp.concatenate(bands, axis=-2)

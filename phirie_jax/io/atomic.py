@@ -38,3 +38,22 @@ def write_text(path: str | Path, text: str) -> None:
 def write_bytes(path: str | Path, data: bytes) -> None:
     with atomic_write(path, "wb") as f:
         f.write(data)
+
+
+def write_files(folder: Path, files: dict[str, bytes]) -> None:
+    """Write each ``name → bytes`` into ``folder``: all to temporary names first, then renamed."""
+    folder.mkdir(parents=True, exist_ok=True)
+    staged: list[tuple[str, Path]] = []
+    try:
+        for name, data in files.items():
+            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
+            staged.append((name, Path(tmp)))
+            with os.fdopen(fd, "wb") as out:
+                out.write(data)
+                out.flush()
+                os.fsync(out.fileno())
+        for name, tmp in staged:
+            os.replace(tmp, folder / name)
+    finally:
+        for _, tmp in staged:
+            tmp.unlink(missing_ok=True)

@@ -14,6 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.errors import SceneInputError
+
+# Pose matrices in text files are often printed with ~7 digits; farther from a
+# rotation than this is a scaled or sheared matrix, not a camera pose.
+RIGID_TOLERANCE = 1e-3
+# Below this the rotation is already orthonormal to float precision and kept bit for bit.
+_ORTHONORMAL_EXACT = 1e-12
+
 
 @dataclasses.dataclass(frozen=True)
 class Camera:
@@ -69,3 +77,33 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 def sort_by_name(cameras: list[Camera]) -> list[Camera]:
     """Camera index k = k-th image in name order (DESIGN.md "Contracts")."""
     return sorted(cameras, key=lambda c: c.name)
+
+
+def rigid(matrix: np.ndarray, path: str | Path, field: str, tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
+    """(4, 4) rigid transform from a (4, 4) or (3, 4) matrix that is one up to ``tolerance``.
+
+    The rotation is replaced by its nearest rotation (SVD) unless it is orthonormal to
+    float precision already. Raises ``SceneInputError`` naming ``path`` and ``field``.
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise SceneInputError(path, field, f"expected a finite 4x4 (or 3x4) matrix, got shape {m.shape}")
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
+        raise SceneInputError(path, field, f"last row {m[3].tolist()} (expected 0 0 0 1)")
+    rot = m[:3, :3]
+    deviation = np.abs(rot.T @ rot - np.eye(3)).max()
+    if deviation > tolerance or np.linalg.det(rot) <= 0:
+        raise SceneInputError(
+            path, field, f"rotation part is not a rotation (|RᵀR − I| = {deviation:.2g}, det = "
+            f"{np.linalg.det(rot):.4g}; expected a rigid pose without scale or reflection)",
+        )
+    out = np.eye(4)
+    out[:3, 3] = m[:3, 3]
+    if deviation <= _ORTHONORMAL_EXACT:
+        out[:3, :3] = rot
+    else:
+        u, _, vt = np.linalg.svd(rot)
+        out[:3, :3] = u @ vt
+    return out

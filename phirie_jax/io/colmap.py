@@ -16,12 +16,12 @@ import dataclasses
 import os
 import re
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
+from phirie_jax.io.atomic import write_files
 from phirie_jax.io.camera import Camera, intrinsics_matrix, sort_by_name
 
 SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -605,23 +605,4 @@ def _write(sparse_dir: Path, cameras: list[Camera], points, colors, *, binary: b
     make = _binary_files if binary else _text_files
     contents = make(list(intrinsics.values()), images, xyz, rgb.astype(np.uint8))
     ext = ".bin" if binary else ".txt"
-    write_atomically(sparse_dir, {f"{stem}{ext}": data for stem, data in zip(STEMS, contents)})
-
-
-def write_atomically(folder: Path, files: dict[str, bytes]) -> None:
-    """Write each ``name → bytes`` into ``folder``: all to temporary names first, then renamed."""
-    folder.mkdir(parents=True, exist_ok=True)
-    staged: list[tuple[str, Path]] = []
-    try:
-        for name, data in files.items():
-            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
-            staged.append((name, Path(tmp)))
-            with os.fdopen(fd, "wb") as out:
-                out.write(data)
-                out.flush()
-                os.fsync(out.fileno())
-        for name, tmp in staged:
-            os.replace(tmp, folder / name)
-    finally:
-        for _, tmp in staged:
-            tmp.unlink(missing_ok=True)
+    write_files(sparse_dir, {f"{stem}{ext}": data for stem, data in zip(STEMS, contents)})

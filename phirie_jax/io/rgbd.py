@@ -18,8 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera
-from phirie_jax.io.transforms_json import rigid
+from phirie_jax.io.camera import Camera, rigid
 
 # Logs print poses with as few as 6 digits; this admits that rounding, not a scale.
 LOG_RIGID_TOLERANCE = 1e-4

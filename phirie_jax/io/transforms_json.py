@@ -23,16 +23,11 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera, intrinsics_matrix, sort_by_name
-from phirie_jax.io.colmap import write_atomically
+from phirie_jax.io.camera import RIGID_TOLERANCE, Camera, intrinsics_matrix, rigid, sort_by_name
+from phirie_jax.io.atomic import write_files
 from phirie_jax.io.images import image_size
 
 SUPPORTED_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
-# Pose matrices in these files are often printed with ~7 digits; farther from a
-# rotation than this is a scaled or sheared matrix, not a camera pose.
-RIGID_TOLERANCE = 1e-3
-# Below this the rotation is already orthonormal to float precision and kept bit for bit.
-_ORTHONORMAL_EXACT = 1e-12
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z (either way)
 _IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")  # tried when file_path names no existing file
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -119,37 +114,7 @@ def write_transforms_json(path: str | Path, cameras: list[Camera], image_dir_nam
             frame.update(own)
         frames.append(frame)
     meta["frames"] = frames
-    write_atomically(path.parent, {path.name: (json.dumps(meta, indent=2) + "\n").encode("utf-8")})
-
-
-def rigid(matrix: np.ndarray, path: str | Path, field: str, tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
-    """(4, 4) rigid transform from a (4, 4) or (3, 4) matrix that is one up to ``tolerance``.
-
-    The rotation is replaced by its nearest rotation (SVD) unless it is orthonormal to
-    float precision already. Raises ``SceneInputError`` naming ``path`` and ``field``.
-    """
-    m = np.asarray(matrix, dtype=np.float64)
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise SceneInputError(path, field, f"expected a finite 4x4 (or 3x4) matrix, got shape {m.shape}")
-    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
-        raise SceneInputError(path, field, f"last row {m[3].tolist()} (expected 0 0 0 1)")
-    rot = m[:3, :3]
-    deviation = np.abs(rot.T @ rot - np.eye(3)).max()
-    if deviation > tolerance or np.linalg.det(rot) <= 0:
-        raise SceneInputError(
-            path, field, f"rotation part is not a rotation (|RᵀR − I| = {deviation:.2g}, det = "
-            f"{np.linalg.det(rot):.4g}; expected a rigid pose without scale or reflection)",
-        )
-    out = np.eye(4)
-    out[:3, 3] = m[:3, 3]
-    if deviation <= _ORTHONORMAL_EXACT:
-        out[:3, :3] = rot
-    else:
-        u, _, vt = np.linalg.svd(rot)
-        out[:3, :3] = u @ vt
-    return out
+    write_files(path.parent, {path.name: (json.dumps(meta, indent=2) + "\n").encode("utf-8")})
 
 
 # --- reading -----------------------------------------------------------------------------
