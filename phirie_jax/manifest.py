@@ -1,0 +1,109 @@
+"""``manifest.json``: the versioned record every stage writes (DESIGN.md "Contracts").
+
+One small API for every stage: load the manifest of an output folder (or start one),
+replace a section (``instances``, ``objects``, ``background``, or a stage's own
+record), add items to a list section by id, record a stage's time, write atomically.
+
+    manifest = Manifest.load_or_create(out_dir)
+    with manifest.timed("observe"):
+        ...
+    manifest.set("instances", [...])
+    manifest.write()
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from phirie_jax.errors import SceneInputError
+from phirie_jax.io.atomic import write_text
+
+SCHEMA = "phirie/1"
+FILENAME = "manifest.json"
+
+
+def _plain(value: Any) -> Any:
+    """NumPy scalars/arrays and paths → JSON values; non-finite floats → None."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return _plain(value.item())
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class Manifest:
+    """The manifest of one output folder, held in memory until ``write``."""
+
+    def __init__(self, out_dir: str | Path, data: dict | None = None):
+        self.out_dir = Path(out_dir)
+        self.data: dict = data if data is not None else {"schema": SCHEMA, "timings": {}}
+
+    @property
+    def path(self) -> Path:
+        return self.out_dir / FILENAME
+
+    @classmethod
+    def load_or_create(cls, out_dir: str | Path) -> "Manifest":
+        """The folder's manifest when there is one (schema checked), else an empty one."""
+        path = Path(out_dir) / FILENAME
+        if not path.exists():
+            return cls(out_dir)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise SceneInputError(path, None, f"not valid JSON ({e})") from None
+        if not isinstance(data, dict):
+            raise SceneInputError(path, None, "expected a JSON object")
+        if data.get("schema") != SCHEMA:
+            raise SceneInputError(path, "schema", f"{data.get('schema')!r} (expected {SCHEMA!r})")
+        if not isinstance(data.setdefault("timings", {}), dict):
+            raise SceneInputError(path, "timings", "expected an object {stage: seconds}")
+        return cls(out_dir, data)
+
+    def get(self, section: str, default: Any = None) -> Any:
+        return self.data.get(section, default)
+
+    def set(self, section: str, value: Any) -> None:
+        """Replace one section (``schema`` and ``timings`` have their own methods)."""
+        if section in ("schema", "timings"):
+            raise ValueError(f"section {section!r} is managed by the manifest itself")
+        self.data[section] = _plain(value)
+
+    def upsert(self, section: str, items: list[dict], key: str = "id") -> None:
+        """Add items to a list section, replacing those with the same ``key``; sorted by it."""
+        current = {item[key]: item for item in self.data.get(section, [])}
+        current.update({item[key]: _plain(item) for item in items})
+        self.data[section] = [current[k] for k in sorted(current)]
+
+    def record_timing(self, stage: str, seconds: float) -> None:
+        self.data["timings"][stage] = round(float(seconds), 6)
+
+    @contextlib.contextmanager
+    def timed(self, stage: str) -> Iterator[None]:
+        """Record the wall time of the block under ``stage`` (also when it raises)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.record_timing(stage, time.perf_counter() - start)
+
+    def write(self) -> Path:
+        """Write ``manifest.json`` atomically (never half-written) and return its path."""
+        ordered = {"schema": SCHEMA, **{k: v for k, v in self.data.items() if k != "schema"}}
+        write_text(self.path, json.dumps(ordered, indent=2, allow_nan=False) + "\n")
+        return self.path
