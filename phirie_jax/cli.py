@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -52,7 +52,75 @@ def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = Non
     Console().print(table)
 
 
-COMMANDS = {"info": info}
+def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
+          preset: Literal["tiny", "default", "large"] = "default") -> None:
+    """Write a procedural tabletop scene with ground truth, laid out like a real capture
+    (INRIA PLY, transforms.json and COLMAP text, images, 16-bit instance masks, surface mesh, gt/).
+
+    Args:
+        out: output scene folder.
+        seed: random seed; the same seed and preset give the same files.
+        preset: tiny (tests, seconds), default (the demo), large (benchmarks).
+    """
+    from rich.console import Console
+
+    from phirie_jax.synthetic import synthesize
+
+    with Console().status(f"synthesizing {preset} scene (seed {seed})"):
+        scene = synthesize(out, preset=preset, seed=seed)
+    print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
+          f"{len(scene.cameras)} cameras")
+
+
+def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
+           gaussians: Path | None = None,
+           background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    """Render a scene's Gaussians from one of its cameras to a PNG.
+
+    Args:
+        scene: a scene folder.
+        out: output image (.png).
+        camera: camera index K (the K-th image in name order).
+        width: output width in pixels (height follows the camera's aspect); default: the camera's.
+        gaussians: Gaussian PLY to use instead of the one found in the folder.
+        background: background colour, rgb in [0, 1].
+    """
+    import numpy as np
+
+    from phirie_jax.errors import SceneInputError
+    from phirie_jax.io.scene import load_scene
+    from phirie_jax.render import render as render_camera
+    from phirie_jax.synthetic.scene import write_png
+
+    loaded = load_scene(scene, gaussians=gaussians, check_images=False)
+    cameras = loaded.require_cameras()
+    if not 0 <= camera < len(cameras):
+        raise SceneInputError(loaded.camera_source, "--camera",
+                              f"{camera} (expected 0..{len(cameras) - 1})")
+    cam = cameras[camera]
+    if width is not None:
+        cam = cam.scaled(width / cam.width)
+    result = render_camera(loaded.require_gaussians().to_kernel(), cam,
+                           background=np.asarray(background, np.float32))
+    write_png(out, np.asarray(result.rgb))
+    print(f"wrote {out} ({cam.width}×{cam.height}, camera {camera}: {cam.name})")
+
+
+def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large"] = "default",
+         seed: int = 0) -> None:
+    """The whole job on the embedded default scene (what `make demo` runs).
+
+    Args:
+        out: output folder.
+        preset: synthetic scene preset.
+        seed: synthetic scene seed.
+    """
+    from phirie_jax.demo import run_demo
+
+    run_demo(out, preset=preset, seed=seed)
+
+
+COMMANDS = {"info": info, "synth": synth, "render": render, "demo": demo}
 
 
 def main(argv: list[str] | None = None) -> int:
