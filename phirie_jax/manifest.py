@@ -17,8 +17,9 @@ import contextlib
 import json
 import math
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -58,7 +59,7 @@ class Manifest:
         return self.out_dir / FILENAME
 
     @classmethod
-    def load_or_create(cls, out_dir: str | Path) -> "Manifest":
+    def load_or_create(cls, out_dir: str | Path) -> Manifest:
         """The folder's manifest when there is one (schema checked), else an empty one."""
         path = Path(out_dir) / FILENAME
         if not path.exists():

@@ -1,0 +1,247 @@
+"""The scene surface: the scan mesh when there is one, else fused from rendered depth.
+
+Splat-derived surface (the paper's Scene Observation): render depth and alpha at the
+training cameras (every k-th), keep pixels with alpha ≥ 0.6, fuse a TSDF at 5 mm voxels
+with ~2 cm truncation, extract a mesh. Two backends give the same surface:
+
+- ``jax``: ``kernels.tsdf.fuse`` on a sparse grid of 8³-voxel blocks chosen on the host
+  (those the truncation band of some depth sample reaches; the block count is padded
+  to a power of two), then naive surface nets (``surface_nets``) on the host.
+- ``open3d``: Open3D's ``VoxelBlockGrid`` (tensor API) and its marching cubes.
+
+``experiments/observe_eval.py`` times both; the faster is ``SurfaceConfig.backend``'s
+default and the one used is recorded in the manifest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from phirie_jax.config import SurfaceConfig
+from phirie_jax.io.camera import Camera
+
+MIN_BLOCK_BUCKET = 64   # smallest padded block count (powers of two above it)
+_KEY_OFFSET = 1 << 20   # voxel/block integer coordinates are packed into 21-bit fields
+
+
+@dataclasses.dataclass(frozen=True)
+class SurfaceMesh:
+    vertices: np.ndarray  # (V, 3) float64 world
+    faces: np.ndarray     # (F, 3) int64, counter-clockwise seen from outside (free space)
+    info: dict            # how it was made: backend, voxel, timings, sizes
+
+    def to_trimesh(self):
+        import trimesh
+
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+def pack_keys(coords: np.ndarray) -> np.ndarray:
+    """(N, 3) integer coordinates in (−2²⁰, 2²⁰) → (N,) int64 keys (one per cell, order-preserving in x)."""
+    c = np.asarray(coords, np.int64) + _KEY_OFFSET
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    mask = (1 << 21) - 1
+    return np.stack([(keys >> 42) & mask, (keys >> 21) & mask, keys & mask], axis=1) - _KEY_OFFSET
+
+
+def bucket(n: int, minimum: int = MIN_BLOCK_BUCKET) -> int:
+    """The static size for n items: the next power of two, at least ``minimum``."""
+    return max(minimum, 1 << max(0, int(np.ceil(np.log2(max(n, 1))))))
+
+
+def backproject(depth: np.ndarray, camera: Camera, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """World points (P, 3) of the valid (> 0) depth pixels on a stride, and their ray directions (z_cam = 1)."""
+    from phirie_jax.observe.raycast import pixel_grid, pixel_rays
+
+    rows, cols = pixel_grid(camera.width, camera.height, stride)
+    origins, dirs = pixel_rays(camera, rows, cols)
+    d = depth[np.ix_(rows, cols)].ravel()
+    ok = d > 0
+    return origins[ok] + d[ok, None] * dirs[ok], dirs[ok]
+
+
+def active_blocks(depths: list[np.ndarray], cameras: list[Camera], truncation: float, voxel: float,
+                  res: int, stride: int = 2) -> np.ndarray:
+    """(B, 3) integer coordinates of the blocks the truncation band of any depth sample reaches.
+
+    Each sampled pixel marks the blocks at depth d + s·(truncation + one block diagonal step)
+    for s on [−1, 1] in steps no longer than half a block, so the band is covered.
+    """
+    block = voxel * res
+    reach = truncation + voxel  # a voxel centre within the band may sit in the next block
+    steps = np.linspace(-1.0, 1.0, max(3, int(np.ceil(2 * reach / (0.5 * block))) + 1))
+    keys = []
+    for depth, cam in zip(depths, cameras):
+        points, dirs = backproject(depth, cam, stride)
+        unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        for s in steps:
+            keys.append(np.unique(pack_keys(np.floor((points + s * reach * unit) / block))))
+    if not keys:
+        return np.zeros((0, 3), np.int64)
+    return unpack_keys(np.unique(np.concatenate(keys)))
+
+
+def fuse_jax(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig):
+    """TSDF with ``kernels.tsdf``: block coords (B, 3), tsdf and weight (B, r, r, r), timings."""
+    import jax.numpy as jnp
+
+    from kernels.tsdf import fuse
+
+    res, step = config.block, config.frames_per_step
+    t0 = time.perf_counter()
+    blocks = active_blocks(depths, cameras, config.truncation, config.voxel, res)
+    padded = bucket(len(blocks))
+    origins = np.zeros((padded, 3), np.float32)
+    origins[: len(blocks)] = blocks * (config.voxel * res)
+    valid = np.arange(padded) < len(blocks)
+    frames = len(depths) + (-len(depths)) % step
+    h, w = depths[0].shape
+    depth_arr = np.zeros((frames, h, w), np.float32)
+    Ks = np.tile(np.eye(3, dtype=np.float32), (frames, 1, 1))
+    poses = np.tile(np.eye(4, dtype=np.float32), (frames, 1, 1))
+    for i, (d, cam) in enumerate(zip(depths, cameras)):
+        depth_arr[i], Ks[i], poses[i] = d, cam.K, cam.world_to_camera
+    t1 = time.perf_counter()
+    tsdf, weight = fuse(jnp.asarray(origins), jnp.asarray(valid), jnp.asarray(depth_arr), jnp.asarray(Ks),
+                        jnp.asarray(poses), jnp.float32(config.truncation), voxel=float(config.voxel), res=res,
+                        frames_per_step=step)
+    tsdf, weight = np.asarray(tsdf)[: len(blocks)], np.asarray(weight)[: len(blocks)]
+    t2 = time.perf_counter()
+    timings = {"blocks_s": t1 - t0, "fuse_s": t2 - t1}
+    return blocks, tsdf, weight, {"blocks": len(blocks), "padded_blocks": int(padded), **timings}
+
+
+# The 12 edges of a cell as pairs of its 8 corners (corner c has offset ((c>>2)&1, (c>>1)&1, c&1)).
+_CORNERS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
+_EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
+                   if np.abs(_CORNERS[a] - _CORNERS[b]).sum() == 1])
+
+
+def surface_nets(blocks: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, voxel: float,
+                 min_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Zero level set of a sparse block TSDF as a triangle mesh (naive surface nets).
+
+    blocks (B, 3) integer block coordinates; tsdf, weight (B, r, r, r) indexed (x, y, z).
+    A cell (2×2×2 voxel centres, all with weight ≥ min_weight) whose corners change sign
+    gets one vertex at the mean of its edges' zero crossings; each voxel edge with a sign
+    change joins the four cells around it in a quad (two triangles), oriented so the
+    normal points from negative (behind the surface) to positive (free space).
+    Returns vertices (V, 3) world and faces (F, 3).
+    """
+    res = tsdf.shape[1]
+    local = np.stack(np.meshgrid(*[np.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    coords = (blocks[:, None, :] * res + local[None]).reshape(-1, 3)
+    keep = weight.reshape(-1) >= min_weight
+    coords, values = coords[keep], tsdf.reshape(-1)[keep].astype(np.float64)
+    keys = pack_keys(coords)
+    order = np.argsort(keys)
+    keys, coords, values = keys[order], coords[order], values[order]
+
+    def lookup(c):
+        k = pack_keys(c)
+        i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+        return i, keys[i] == k if len(keys) else np.zeros(len(k), bool)
+
+    if len(keys) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    corner_idx = np.empty((len(keys), 8), np.int64)
+    corner_ok = np.empty((len(keys), 8), bool)
+    for c in range(8):
+        corner_idx[:, c], corner_ok[:, c] = lookup(coords + _CORNERS[c])
+    vals = values[corner_idx]
+    inside = vals < 0
+    cell = corner_ok.all(1) & inside.any(1) & ~inside.all(1)
+
+    # one vertex per surface cell: mean of the zero crossings on its edges
+    va, vb = vals[cell][:, _EDGES[:, 0]], vals[cell][:, _EDGES[:, 1]]
+    crossing = (va < 0) != (vb < 0)
+    t = np.where(crossing, va / np.where(crossing, va - vb, 1.0), 0.0)
+    pa, pb = _CORNERS[_EDGES[:, 0]], _CORNERS[_EDGES[:, 1]]
+    points = pa[None] + t[..., None] * (pb - pa)[None]
+    local_vertex = (points * crossing[..., None]).sum(1) / crossing.sum(1, keepdims=True)
+    vertices = (coords[cell] + local_vertex + 0.5) * voxel
+    vertex_of = np.full(len(keys), -1, np.int64)
+    vertex_of[np.flatnonzero(cell)] = np.arange(cell.sum())
+
+    quads = []
+    for axis in range(3):
+        step = np.eye(3, dtype=np.int64)[axis]
+        j, found = lookup(coords + step)
+        change = found & ((values < 0) != (values[j] < 0))
+        base = coords[change]
+        a1, a2 = [np.eye(3, dtype=np.int64)[k] for k in range(3) if k != axis]
+        ring = [base, base - a1, base - a1 - a2, base - a2]
+        ids = []
+        ok = np.ones(len(base), bool)
+        for corner in ring:
+            i, f = lookup(corner)
+            v = np.where(f, vertex_of[i], -1)
+            ok &= v >= 0
+            ids.append(v)
+        quad = np.stack(ids, 1)[ok]
+        outward = np.where(values[change][ok] < 0, 1.0, -1.0)[:, None] * step[None]  # negative → positive
+        p = vertices[quad]
+        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+        flip = np.sum(normal * outward, axis=1) < 0
+        quad[flip] = quad[flip][:, ::-1]
+        quads.append(quad)
+    quad = np.concatenate(quads) if quads else np.zeros((0, 4), np.int64)
+    faces = np.concatenate([quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]])
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[faces]
+
+
+def fuse_open3d(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig):
+    """Open3D ``VoxelBlockGrid`` TSDF and its marching cubes: vertices, faces, info.
+
+    (The legacy ``ScalableTSDFVolume`` of the open3d 0.20 wheel returns empty meshes even
+    for Open3D's own RGB-D sample, so the tensor API is used.)
+    """
+    import open3d as o3d
+    import open3d.core as o3c
+
+    t0 = time.perf_counter()
+    grid = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32), attr_channels=((1), (1)),
+        voxel_size=config.voxel, block_resolution=config.block, block_count=1 << 16, device=o3c.Device("CPU:0"))
+    multiplier = config.truncation / config.voxel
+    for depth, cam in zip(depths, cameras):
+        image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth, np.float32)))
+        K = cam.K.copy()
+        K[:2, 2] -= 0.5  # Open3D counts pixel centres at integers (see phirie_jax.io.rgbd)
+        K, extrinsic = o3c.Tensor(K, o3c.float64), o3c.Tensor(cam.world_to_camera, o3c.float64)
+        coords = grid.compute_unique_block_coordinates(image, K, extrinsic, 1.0, config.depth_max,
+                                                       trunc_voxel_multiplier=multiplier)
+        grid.integrate(coords, image, K, extrinsic, 1.0, config.depth_max, trunc_voxel_multiplier=multiplier)
+    t1 = time.perf_counter()
+    mesh = grid.extract_triangle_mesh(weight_threshold=config.min_weight)
+    t2 = time.perf_counter()
+    return (mesh.vertex.positions.numpy().astype(np.float64), mesh.triangle.indices.numpy().astype(np.int64),
+            {"fuse_s": t1 - t0, "extract_s": t2 - t1})
+
+
+def fuse_depths(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig) -> SurfaceMesh:
+    """Fuse depth maps (H, W) in metres (0 = no measurement) seen by ``cameras`` into a mesh."""
+    depths = [np.where((d > 0) & (d <= config.depth_max) & np.isfinite(d), d, 0.0).astype(np.float32)
+              for d in depths]
+    if not depths or not any(np.any(d > 0) for d in depths):
+        raise ValueError("no valid depth to fuse (every pixel empty or beyond depth_max)")
+    info = {"backend": config.backend, "voxel": config.voxel, "truncation": config.truncation,
+            "frames": len(depths)}
+    if config.backend == "open3d":
+        vertices, faces, timings = fuse_open3d(depths, cameras, config)
+    else:
+        blocks, tsdf, weight, timings = fuse_jax(depths, cameras, config)
+        t0 = time.perf_counter()
+        vertices, faces = surface_nets(blocks, tsdf, weight, config.voxel, config.min_weight)
+        timings["extract_s"] = time.perf_counter() - t0
+    info.update(timings, vertices=len(vertices), faces=len(faces))
+    return SurfaceMesh(vertices, faces, info)
