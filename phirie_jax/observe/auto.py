@@ -11,6 +11,8 @@
    ``max_object_height``) inside its footprint, assigned to the nearest support below.
    Euclidean clustering (radius graph, ``cluster_eps``) per support; a cluster is an
    object when it is big enough, small enough and its lowest point is near the support.
+   The object's sides within the plane threshold of the support (not upward-facing,
+   next to the cluster) are given back to it.
 4. Per-view masks: each pixel's first hit on the surface takes the label of the nearest
    sample (within two sample voxels): projection of each cluster with occlusion.
 """
@@ -168,7 +170,7 @@ def _with_footprint(inliers, normal, offset, cell, area) -> Support:
     grid = np.zeros(idx.max(0) + 2, bool)
     grid[idx[:, 0], idx[:, 1]] = True
     grid = ndimage.binary_fill_holes(ndimage.binary_closing(grid, iterations=2, border_value=0))
-    return Support(normal, offset, int(len(inliers)), area, origin, grid, basis)
+    return Support(normal, offset, len(inliers), area, origin, grid, basis)
 
 
 def segment(points: np.ndarray, normals: np.ndarray, cameras: list[Camera], config: AutoMaskConfig
@@ -201,7 +203,7 @@ def segment(points: np.ndarray, normals: np.ndarray, cameras: list[Camera], conf
             pts = points[members]
             extent = float(np.linalg.norm(pts.max(0) - pts.min(0)))
             base_gap = float(heights[members, s].min())
-            info = {"support": s, "points": int(len(members)), "extent_m": round(extent, 4),
+            info = {"support": s, "points": len(members), "extent_m": round(extent, 4),
                     "base_gap_m": round(base_gap, 4), "centroid": pts.mean(0).round(4).tolist()}
             if len(members) < config.min_cluster_points:
                 if len(members) >= 3:  # smaller specks are not worth a record
@@ -218,7 +220,21 @@ def segment(points: np.ndarray, normals: np.ndarray, cameras: list[Camera], conf
             labels[members] = next_id
             objects.append({"id": next_id, **info})
             next_id += 1
+    _reclaim_base(points, normals, labels, on_support, up, config)
     return AutoSegmentation(points, labels, supports, objects, rejected, up)
+
+
+def _reclaim_base(points, normals, labels, on_support, up, config: AutoMaskConfig) -> None:
+    """Give back to each object the strip of its sides within the plane threshold of the
+    support (not upward-facing, next to the object's samples); the table stays table."""
+    cos_tilt = np.cos(np.deg2rad(config.up_max_tilt_deg))
+    strip = np.flatnonzero(on_support & (normals @ up <= cos_tilt))
+    owned = np.flatnonzero(labels > 0)
+    if len(strip) == 0 or len(owned) == 0:
+        return
+    dist, nearest = cKDTree(points[owned]).query(points[strip], distance_upper_bound=config.cluster_eps)
+    found = np.isfinite(dist)
+    labels[strip[found]] = labels[owned[nearest[found]]]
 
 
 def auto_masks(raycaster: Raycaster, cameras: tuple[Camera, ...], seg: AutoSegmentation, sample_voxel: float):

@@ -101,7 +101,7 @@ def evaluate(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera] |
     for g, obj in enumerate(objects):
         best = int(np.argmax(iou[g])) if iou.shape[1] else None
         matched = next((m for m in matches if m[0] == g), None)
-        per_object.append({"id": obj["id"], "category": obj["category"], "visible_samples": int(len(truth[g])),
+        per_object.append({"id": obj["id"], "category": obj["category"], "visible_samples": len(truth[g]),
                            "best_iou": round(float(iou[g, best]), 4) if best is not None else 0.0,
                            "best_instance": instances[best]["id"] if best is not None else None,
                            "matched_instance": instances[matched[1]]["id"] if matched else None})

@@ -33,7 +33,7 @@ class Proposal:
 
     def summary(self) -> dict:
         return {"view": self.view, "label": self.label, "pixels": self.pixels,
-                "lifted_points": int(len(self.points)), "bbox": list(self.bbox), "score": self.score}
+                "lifted_points": len(self.points), "bbox": list(self.bbox), "score": self.score}
 
 
 def interior(labels: np.ndarray, radius: int) -> np.ndarray:

@@ -37,8 +37,15 @@ from phirie_jax.manifest import Manifest
 from phirie_jax.observe import auto as auto_mod
 from phirie_jax.observe.associate import associate
 from phirie_jax.observe.lift import Proposal, lift_view
-from phirie_jax.observe.masks import (ViewFailure, ViewMasks, camera_problem, external_masks, file_masks,
-                                      projected_masks, scannetpp_vertex_labels)
+from phirie_jax.observe.masks import (
+    ViewFailure,
+    ViewMasks,
+    camera_problem,
+    external_masks,
+    file_masks,
+    projected_masks,
+    scannetpp_vertex_labels,
+)
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.observe.surface import SurfaceMesh, fuse_depths
 
@@ -77,11 +84,11 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
                                   "mesh.ply or scans/mesh_aligned_0.05.ply) and surface_source is 'mesh'")
         try:
             mesh = trimesh.load(scene.surface_mesh, force="mesh", process=False)
-        except Exception as err:  # trimesh raises many kinds for a bad file
+        except (ValueError, OSError, KeyError, IndexError, TypeError) as err:  # what trimesh raises for bad files
             raise SceneInputError(scene.surface_mesh, None, f"not a readable mesh ({err})") from None
         if len(mesh.faces) == 0:
             raise SceneInputError(scene.surface_mesh, "faces", "none (expected a triangle mesh)")
-        record = {"kind": "scan", "path": str(scene.surface_mesh), "faces": int(len(mesh.faces))}
+        record = {"kind": "scan", "path": str(scene.surface_mesh), "faces": len(mesh.faces)}
         return SurfaceMesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), record), record
     if scene.gaussians is None or not scene.cameras:
         raise SceneInputError(scene.root, "surface", "no scan mesh and no way to build one (a splat-derived "
@@ -119,7 +126,7 @@ def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster, surfa
         points, normals = auto_mod.observed_samples(raycaster, cams, config.auto.sample_stride,
                                                     config.auto.sample_voxel)
         seg = auto_mod.segment(points, normals, cams, config.auto)
-        record["auto"] = {"samples": int(len(points)), "up": seg.up.round(6).tolist(),
+        record["auto"] = {"samples": len(points), "up": seg.up.round(6).tolist(),
                           "supports": [s.as_dict() for s in seg.supports], "objects": seg.objects,
                           "rejected_clusters": seg.rejected, "segment_s": round(time.perf_counter() - t0, 4)}
         return auto_mod.auto_masks(raycaster, scene.cameras, seg, config.auto.sample_voxel), "auto"
@@ -181,13 +188,13 @@ def instance_record(instance_id: int, members: list[Proposal], mask_paths: dict[
         lifted=np.array([len(p.points) for p in members], np.int32))
     write_bytes(out_dir / rel, buf.getvalue())
     return {"id": int(instance_id), "category": votes.most_common(1)[0][0] if votes else None,
-            "views": views, "view_names": [cameras[v].name for v in views], "num_points": int(len(points)),
+            "views": views, "view_names": [cameras[v].name for v in views], "num_points": len(points),
             "bounds": [points.min(0).round(6).tolist(), points.max(0).round(6).tolist()],
             "source": source, "points": rel, "confidence": round(confidence, 4),
             "single_view_points_dropped": dropped}
 
 
-def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig = ObserveConfig(),
+def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
                 masks: str | Path | None = None, scene: SceneInput | None = None) -> dict:
     """Run Scene Observation on a scene folder; write ``out_dir`` (see the module docstring).
 
@@ -197,6 +204,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
     whole; a failing view or instance is recorded in the manifest and the rest goes on.
     """
     out_dir = Path(out_dir)
+    config = config or ObserveConfig()
     manifest = Manifest.load_or_create(out_dir)
     start = time.perf_counter()
     scene = scene or load_scene(scene_dir)

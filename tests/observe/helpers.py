@@ -45,7 +45,7 @@ def write_png(path: Path, image: np.ndarray) -> None:
     assert cv2.imwrite(str(path), image)
 
 
-def tabletop_folder(root: Path, num_cameras: int = 10, width: int = 160, height: int = 120, seed: int = 0):
+def tabletop_folder(root: Path, num_cameras: int = 10, width: int = 240, height: int = 180, seed: int = 0):
     """A scene folder from ``build_scene('tiny', seed)`` geometry: transforms.json, grey images,
     surface.ply, masks projected from the ground-truth meshes, gt/objects.json."""
     import trimesh

@@ -13,7 +13,14 @@ import trimesh
 from phirie_jax.config import ObserveConfig
 from phirie_jax.errors import SceneInputError
 from phirie_jax.observe.lift import interior, lift_view
-from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, external_masks, file_masks, read_label_png
+from phirie_jax.observe.masks import (
+    Segment,
+    ViewFailure,
+    ViewMasks,
+    external_masks,
+    file_masks,
+    read_label_png,
+)
 from phirie_jax.observe.raycast import Raycaster
 from tests.observe.helpers import ring, write_png
 
