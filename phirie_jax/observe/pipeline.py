@@ -47,7 +47,7 @@ from phirie_jax.observe.masks import (
     scannetpp_vertex_labels,
 )
 from phirie_jax.observe.raycast import Raycaster
-from phirie_jax.observe.surface import SurfaceMesh, fuse_depths
+from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
 
 
 def render_depths(scene: SceneInput, config: ObserveConfig) -> tuple[list[np.ndarray], list[Camera], list[dict]]:
@@ -100,6 +100,16 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
     if not depths:
         raise SceneInputError(scene.root, "surface", "no view could be rendered to build a splat-derived surface")
     surface = fuse_depths(depths, cams, config.surface)
+    if config.surface.snap_radius > 0:
+        t0 = time.perf_counter()
+        g = scene.gaussians
+        opaque = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64))) >= config.surface.snap_min_opacity
+        vertices, offset = snap_to_centres(surface.vertices, surface.faces, g.means[opaque].astype(np.float64),
+                                           config.surface.snap_radius, config.surface.snap_neighbours)
+        info = {**surface.info, "snap_s": time.perf_counter() - t0,
+                "snap_offset_mm_median": float(np.median(offset) * 1000),
+                "snap_offset_mm_p95_abs": float(np.percentile(np.abs(offset), 95) * 1000)}
+        surface = SurfaceMesh(vertices, surface.faces, info)
     data = surface.to_trimesh().export(file_type="ply")
     write_bytes(out_dir / "observe" / "surface.ply", data)
     record = {"kind": "splats", "path": "observe/surface.ply", "render_s": round(render_s, 4),

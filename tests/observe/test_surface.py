@@ -139,3 +139,22 @@ def test_no_surface_and_no_way_to_build_one(tmp_path):
         scene_surface(bare, ObserveConfig(), tmp_path)
     with pytest.raises(SceneInputError, match="no scan mesh"):
         scene_surface(bare, ObserveConfig(surface_source="mesh"), tmp_path)
+
+
+def test_snapping_moves_a_biased_plane_onto_the_centres_and_leaves_the_rest():
+    from phirie_jax.observe.surface import snap_to_centres
+
+    n = 31
+    grid = np.stack(np.meshgrid(np.linspace(0, 0.3, n), np.linspace(0, 0.3, n), indexing="ij"), -1).reshape(-1, 2)
+    quads = [(i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1) for i in range(n - 1) for j in range(n - 1)]
+    faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
+    vertices = np.c_[grid, np.full(len(grid), 0.004)]  # 4 mm in front of the true surface z = 0
+    rng = np.random.default_rng(0)
+    centres = np.c_[rng.uniform(0, 0.2, 4000), rng.uniform(0, 0.3, 4000), np.zeros(4000)]  # evidence where x < 0.2
+    moved, offset = snap_to_centres(vertices, faces, centres, radius=0.015, neighbours=8)
+    covered = vertices[:, 0] < 0.18
+    np.testing.assert_allclose(moved[covered, 2], 0.0, atol=1e-9)
+    np.testing.assert_allclose(moved[covered, :2], vertices[covered, :2], atol=1e-9)
+    far = vertices[:, 0] > 0.22
+    np.testing.assert_array_equal(moved[far], vertices[far])
+    assert np.all(offset[far] == 0)
