@@ -87,7 +87,7 @@ def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
 def evaluate_scene(scene_dir: Path, work: Path) -> dict:
     import trimesh
 
-    from phirie_jax.config import ObserveConfig, SurfaceConfig
+    from phirie_jax.config import ObserveConfig
     from phirie_jax.io.scene import load_scene
     from phirie_jax.observe.pipeline import render_depths
     from phirie_jax.observe.surface import snap_to_centres

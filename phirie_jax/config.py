@@ -79,6 +79,8 @@ class AutoMaskConfig:
         max_object_extent: larger clusters are furniture or walls, not movable objects.
         max_object_height: points higher than this above their support are not considered.
         max_base_gap: a cluster stands on its support when its lowest point is this close.
+        min_object_height: a cluster's top is at least this high above its support (a noisy
+            splat-derived floor has bumps of 1–2 cm; flatter objects are missed).
         ransac_iterations: plane hypotheses for the dominant support (seeded, deterministic).
         seed: RANSAC seed.
     """
@@ -94,6 +96,7 @@ class AutoMaskConfig:
     max_object_extent: float = 0.5
     max_object_height: float = 0.6
     max_base_gap: float = 0.03
+    min_object_height: float = 0.025
     ransac_iterations: int = 256
     seed: int = 0
 

@@ -203,8 +203,10 @@ def segment(points: np.ndarray, normals: np.ndarray, cameras: list[Camera], conf
             pts = points[members]
             extent = float(np.linalg.norm(pts.max(0) - pts.min(0)))
             base_gap = float(heights[members, s].min())
+            top = float(heights[members, s].max())
             info = {"support": s, "points": len(members), "extent_m": round(extent, 4),
-                    "base_gap_m": round(base_gap, 4), "centroid": pts.mean(0).round(4).tolist()}
+                    "base_gap_m": round(base_gap, 4), "height_m": round(top, 4),
+                    "centroid": pts.mean(0).round(4).tolist()}
             if len(members) < config.min_cluster_points:
                 if len(members) >= 3:  # smaller specks are not worth a record
                     rejected.append({**info, "reason": f"{len(members)} samples (< {config.min_cluster_points})"})
@@ -212,6 +214,10 @@ def segment(points: np.ndarray, normals: np.ndarray, cameras: list[Camera], conf
             if extent > config.max_object_extent:
                 rejected.append({**info, "reason": f"extent {extent:.2f} m > {config.max_object_extent} m "
                                  "(furniture or structure)"})
+                continue
+            if top < config.min_object_height:
+                rejected.append({**info, "reason": f"top {top:.3f} m above the support (< "
+                                 f"{config.min_object_height} m): a bump of the support, not an object"})
                 continue
             if base_gap > config.max_base_gap:
                 rejected.append({**info, "reason": f"lowest point {base_gap:.3f} m above the support "
