@@ -80,7 +80,7 @@ class AutoMaskConfig:
         max_object_height: points higher than this above their support are not considered.
         max_base_gap: a cluster stands on its support when its lowest point is this close.
         min_object_height: a cluster's top is at least this high above its support (a noisy
-            splat-derived floor has bumps of 1–2 cm; flatter objects are missed).
+            splat-derived floor has bumps of up to 2.4 cm; flatter objects are missed).
         ransac_iterations: plane hypotheses for the dominant support (seeded, deterministic).
         seed: RANSAC seed.
     """
@@ -96,7 +96,7 @@ class AutoMaskConfig:
     max_object_extent: float = 0.5
     max_object_height: float = 0.6
     max_base_gap: float = 0.03
-    min_object_height: float = 0.025
+    min_object_height: float = 0.03
     ransac_iterations: int = 256
     seed: int = 0
 
