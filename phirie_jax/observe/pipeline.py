@@ -118,16 +118,21 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
     return surface, record
 
 
-def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster, surface: SurfaceMesh,
+def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
                config: ObserveConfig, record: dict):
     """The per-view masks of the chosen source (an iterator) and the source's name."""
     if masks == "files":
         if scene.masks is not None:
             return file_masks(scene.cameras, scene.masks), "files"
-        if scene.segments_anno is not None:
-            vertex_labels, names = scannetpp_vertex_labels(scene.segments_anno, len(surface.vertices))
+        if scene.segments_anno is not None and scene.surface_mesh is not None:
+            # the annotations label the scan's vertices: project that mesh, whatever surface is lifted onto
+            import trimesh
+
+            scan = trimesh.load(scene.surface_mesh, force="mesh", process=False)
+            vertex_labels, names = scannetpp_vertex_labels(scene.segments_anno, len(scan.vertices))
             record["annotations"] = str(scene.segments_anno)
-            return projected_masks(raycaster, vertex_labels, scene.cameras, names, "segments_anno"), "files"
+            return projected_masks(Raycaster(scan.vertices, scan.faces), vertex_labels, scene.cameras, names,
+                                   "segments_anno"), "files"
         raise SceneInputError(scene.root / "masks", "--masks files",
                               "no masks/ folder and no ScanNet++ annotations (use --masks auto or a folder)")
     if masks == "auto":
@@ -226,7 +231,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
         raycaster = Raycaster(surface.vertices, surface.faces)
     record: dict = {"surface": surface_record}
     t_mask = time.perf_counter()
-    views, source = mask_views(scene, masks, raycaster, surface, config, record)
+    views, source = mask_views(scene, masks, raycaster, config, record)
     mask_s, lift_s = time.perf_counter() - t_mask, 0.0
     proposals, rejected, failures, mask_paths = [], [], [], {}
     iterator = iter(views)

@@ -137,3 +137,28 @@ def test_external_json_errors_name_the_field(tmp_path):
     assert "segments[0].score: 2.0 (expected a number in [0, 1])" in failure.reason
     with pytest.raises(SceneInputError, match="folder not found"):
         list(external_masks(tmp_path / "nope", tuple(cams)))
+
+
+def test_scannetpp_annotations_become_masks_of_the_scan(tmp_path):
+    from phirie_jax.observe.masks import projected_masks, scannetpp_vertex_labels
+
+    table = trimesh.creation.box(extents=[1.0, 1.0, 0.02])
+    table.apply_translation([0, 0, -0.01])
+    box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    box.apply_translation([0, 0, 0.1])
+    scan = trimesh.util.concatenate([table, box])
+    # segments: table vertices → segment 5, box vertices → segment 9; object 0 (a "crate") is segment 9
+    seg_indices = [5] * len(table.vertices) + [9] * len(box.vertices)
+    (tmp_path / "segments.json").write_text(json.dumps({"segIndices": seg_indices}))
+    anno = tmp_path / "segments_anno.json"
+    anno.write_text(json.dumps({"segGroups": [{"objectId": 0, "label": "crate", "segments": [9]}]}))
+    labels, names = scannetpp_vertex_labels(anno, len(scan.vertices))
+    assert names == {1: "crate"} and np.all(labels[len(table.vertices):] == 1) and np.all(labels[:8] == 0)
+    cams = ring(3, 1.0, 0.8, width=40, height_px=30, focal=35.0)
+    caster = Raycaster(scan.vertices, scan.faces)
+    for cam, masks in zip(cams, projected_masks(caster, labels, tuple(cams), names)):
+        on_box = Raycaster(box.vertices, box.faces).depth_map(cam) > 0
+        assert masks.segments == {1: Segment(1, 1, "crate")}
+        np.testing.assert_array_equal(masks.labels == 1, on_box)
+    with pytest.raises(SceneInputError, match=r"segIndices: 16 entries \(expected one per scan mesh vertex, 17\)"):
+        scannetpp_vertex_labels(anno, len(scan.vertices) + 1)
