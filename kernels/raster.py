@@ -1,0 +1,233 @@
+"""Tile-based 3D Gaussian Splatting rasterizer (the method of Kerbl et al. 2023), pure JAX.
+
+Pipeline for one camera (``rasterize``), all static shapes:
+
+1. ``project_gaussians``: EWA projection, 3σ radius, tile rectangle, SH colour.
+2. ``bin_gaussians``: sort visible Gaussians by view depth, expand each into its
+   tile intersections in that order (into a buffer of ``capacity`` slots), then
+   stably sort the slots by tile id. Each tile's list is thus depth-ordered; its
+   range comes from a histogram of tile ids. Non-differentiable bookkeeping.
+3. ``composite``: per-tile front-to-back compositing through a work queue of
+   tiles with early exit, with a recompute-based custom VJP (``kernels.composite``).
+
+Nothing is dropped silently: the output reports the intersections needed
+(``num_intersections``) and ``overflow`` when they did not fit the buffer (or, for
+the autodiff backward, when the longest tile list exceeded ``tile_capacity``); the
+host wrapper (``phirie_jax.render``) retries with a larger power-of-two bucket.
+
+Outputs per pixel: rgb = Σ wᵢ cᵢ + T·background, depth = Σ wᵢ zᵢ (alpha-weighted view
+depth, *not* normalized: divide by alpha, ``RasterOutput.depth_normalized``),
+alpha = 1 − T, features = Σ wᵢ fᵢ (no background), with wᵢ = αᵢ Tᵢ.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from kernels.composite import (
+    TileGrid,
+    TileLists,
+    composite,
+    composite_scan,
+)
+from kernels.gaussians import Gaussians
+from kernels.project import NEAR_PLANE, Projected, project_gaussians
+from kernels.pytree import pytree_dataclass, static_field
+
+MAX_INTERSECTIONS = 1 << 30  # beyond this the int32 bookkeeping could overflow: always "overflow"
+DEPTH_EPS = 1e-10            # guards depth / alpha where nothing was hit
+# Tiles in flight (kernels.composite). A CPU wants few: idle slots cost work. A GPU wants
+# enough to fill it, but the loop runs about as many steps as the longest tile needs
+# whatever the slot count, so extra slots mostly compute masked work. Measured on an H100
+# (experiments/bench_render.py): 256 slots for 1.1K tiles (garden 648×420) was 3× faster
+# than 1107; 1024 for 8.2K tiles (1080p) matched 512 and 2048 forward, best backward.
+CPU_SLOTS = 8
+GPU_MIN_SLOTS = 256
+GPU_TILES_PER_SLOT = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterConfig:
+    """Static rasterizer settings (hashable: each distinct value is one compiled program).
+
+    capacity: tile–Gaussian intersection buffer (a power of two by convention).
+    chunk: Gaussians composited per step of a tile's loop.
+    slots: tiles in flight in the work queue (None: per backend, see ``CPU_SLOTS``).
+    backward: "custom" (recompute-based VJP, early exit) or "autodiff" (fixed-length
+        scan, plain reverse mode; needs ``tile_capacity`` ≥ the longest tile list).
+    sequential: composite a chunk as the literal 3DGS loop unrolled (one fused kernel)
+        instead of the matrix-product formulation; same results, see
+        ``resolved_sequential``. The backward is the same either way.
+    """
+
+    capacity: int = 1 << 18
+    tile_size: int = 16
+    near: float = NEAR_PLANE
+    chunk: int = 32
+    slots: int | None = None
+    backward: str = "custom"
+    tile_capacity: int = 1 << 12
+    sequential: bool = False
+
+    def resolved_sequential(self) -> bool:
+        """Chunk compositing as one fused sequential loop? Off by default: on an H100 it
+        was up to 3× faster in isolation but erratic inside the loop (2–7× slower at some
+        slot counts) and 5–15× slower to compile; on a CPU no faster."""
+        return bool(self.sequential)
+
+    def resolved_slots(self, num_tiles: int) -> int:
+        slots = self.slots
+        if slots is None:
+            if jax.default_backend() == "cpu":
+                slots = CPU_SLOTS
+            else:
+                slots = max(GPU_MIN_SLOTS, num_tiles // GPU_TILES_PER_SLOT)
+        return max(1, min(slots, num_tiles))
+
+
+@pytree_dataclass
+class RasterOutput:
+    """Images and diagnostics of one render (leading batch dims under ``render_batch``)."""
+
+    rgb: jax.Array                     # (H, W, 3) composited over the background
+    depth: jax.Array                   # (H, W) Σ wᵢ zᵢ, alpha-weighted, not normalized
+    alpha: jax.Array                   # (H, W) 1 − final transmittance
+    features: jax.Array                # (H, W, F) Σ wᵢ fᵢ (F may be 0)
+    radii: jax.Array                   # (N,) 3σ screen radius, 0 where culled
+    num_visible: jax.Array             # () int32 Gaussians touching at least one tile
+    num_intersections: jax.Array       # () int32 tile intersections needed
+    max_tile_intersections: jax.Array  # () int32 longest tile list (of what fitted)
+    overflow: jax.Array                # () bool: something did not fit; the image is incomplete
+    steps: jax.Array                   # () int32 compositing loop iterations (for tuning)
+    capacity: int = static_field(default=0)
+
+    @property
+    def depth_normalized(self) -> jax.Array:
+        """(H, W) expected depth of what was hit: depth / alpha (0 where alpha is 0)."""
+        return jnp.where(self.alpha > 0, self.depth / jnp.maximum(self.alpha, DEPTH_EPS), 0.0)
+
+
+def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
+    """Depth-ordered per-tile lists.  Returns (TileLists, needed intersections () int32).
+
+    Slots past ``capacity`` are not stored; ``needed`` says how many there were.
+    """
+    n = proj.depths.shape[0]
+    x0, y0, x1, y1 = (proj.rects[:, i] for i in range(4))
+    span_x = jnp.maximum(x1 - x0 + 1, 0)
+    counts = span_x * jnp.maximum(y1 - y0 + 1, 0)  # (N,) int32, 0 for culled
+    depth_key = jnp.where(counts > 0, jax.lax.stop_gradient(proj.depths), jnp.inf)
+    _, order = jax.lax.sort_key_val(depth_key, jnp.arange(n, dtype=jnp.int32))  # stable
+    counts_sorted = counts[order]
+    ends = jnp.cumsum(counts_sorted, dtype=jnp.int32)  # (N,) exclusive end of each run
+    # The int32 sum could wrap for absurd scenes; a float sum tells when that is possible.
+    too_many = jnp.sum(counts.astype(jnp.float32)) > MAX_INTERSECTIONS
+    needed = jnp.where(too_many, jnp.iinfo(jnp.int32).max, ends[-1])
+
+    # Owner of each slot: mark the first slot of every Gaussian with its rank, then a
+    # running max carries it forward (O(C); much faster than a binary search per slot).
+    starts = ends - counts_sorted
+    marks = jnp.zeros(capacity, jnp.int32).at[jnp.where(counts_sorted > 0, starts, capacity)].max(
+        jnp.arange(n, dtype=jnp.int32), mode="drop")
+    rank = jax.lax.cummax(marks)
+    slot = jnp.arange(capacity, dtype=jnp.int32)
+    gid = order[rank]
+    local = slot - starts[rank]  # index inside the Gaussian's rectangle
+    width = jnp.maximum(span_x[gid], 1)
+    tile = (y0[gid] + local // width) * grid.tiles_x + x0[gid] + local % width
+    tile = jnp.where((slot < needed) & ~too_many, tile, grid.num_tiles)  # sentinel sorts last
+    # Stable: entries of one tile keep the depth order they were expanded in.
+    sorted_tile, gaussian_ids = jax.lax.sort((tile, gid), num_keys=1, is_stable=True)
+    bounds = jnp.searchsorted(sorted_tile, jnp.arange(grid.num_tiles + 1, dtype=jnp.int32),
+                              side="left").astype(jnp.int32)
+    tile_start, tile_count = bounds[:-1], jnp.diff(bounds)
+    return TileLists(gaussian_ids, tile_start, tile_count), needed
+
+
+def _tiles_to_image(grid: TileGrid, x):
+    """(NT, P, ...) per-tile pixels → (H, W, ...) image."""
+    ts, ty, tx = grid.tile_size, grid.tiles_y, grid.tiles_x
+    rest = x.shape[2:]
+    x = x.reshape((ty, tx, ts, ts) + rest)
+    x = jnp.moveaxis(x, 2, 1).reshape((ty * ts, tx * ts) + rest)
+    return x[: grid.height, : grid.width]
+
+
+def rasterize(gaussians: Gaussians, K, world_to_camera, *, width: int, height: int,
+              background=None, features=None, config: RasterConfig = RasterConfig()
+              ) -> RasterOutput:
+    """Render N Gaussians into one camera.
+
+    gaussians: N Gaussians; K (3, 3); world_to_camera (4, 4) OpenCV axes; width, height:
+    static image size; background (3,) (default black); features (N, F) extra channels
+    composited like colour (no background). Differentiable in every Gaussian parameter,
+    in ``features`` and ``background``; jit with ``width``, ``height``, ``config`` static.
+    """
+    grid = TileGrid(width, height, config.tile_size)
+    dtype = gaussians.means.dtype
+    n = gaussians.num
+    proj = project_gaussians(gaussians, K, world_to_camera, width=width, height=height,
+                             tile_size=config.tile_size, near=config.near)
+    if features is None:
+        features = jnp.zeros((n, 0), dtype)
+    background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
+    params = jnp.concatenate([
+        proj.means2d, proj.conics, proj.opacities[:, None], proj.colors, proj.depths[:, None],
+        features.astype(dtype)], axis=1)  # (N, D) rows of kernels.composite
+
+    lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, config.capacity)
+    max_tile = jnp.max(lists.tile_count)
+    overflow = needed > config.capacity
+    if config.backward == "custom":
+        slots = config.resolved_slots(grid.num_tiles)
+        acc, trans, steps = composite(grid, slots, config.chunk, config.resolved_sequential(),
+                                      params, lists.gaussian_ids, lists.tile_start,
+                                      lists.tile_count)
+    elif config.backward == "autodiff":
+        max_chunks = -(-config.tile_capacity // config.chunk)
+        acc, trans = composite_scan(grid, config.chunk, max_chunks, params, lists)
+        steps = jnp.asarray(max_chunks, jnp.int32)
+        overflow = overflow | (max_tile > max_chunks * config.chunk)
+    else:
+        raise ValueError(f"RasterConfig.backward: {config.backward!r} (expected 'custom' or 'autodiff')")
+
+    acc = _tiles_to_image(grid, acc)
+    trans = _tiles_to_image(grid, trans)
+    return RasterOutput(
+        rgb=acc[..., :3] + trans[..., None] * background,
+        depth=acc[..., 3],
+        alpha=1.0 - trans,
+        features=acc[..., 4:],
+        radii=jax.lax.stop_gradient(proj.radii),
+        num_visible=jnp.sum(proj.visible, dtype=jnp.int32),
+        num_intersections=needed,
+        max_tile_intersections=max_tile,
+        overflow=overflow,
+        steps=steps,
+        capacity=config.capacity,
+    )
+
+
+def render_batch(gaussians: Gaussians, Ks, world_to_cameras, *, width: int, height: int,
+                 background=None, features=None, config: RasterConfig = RasterConfig()
+                 ) -> RasterOutput:
+    """Many cameras (and optionally as many Gaussian sets of equal size) in one call.
+
+    Ks (B, 3, 3), world_to_cameras (B, 4, 4). gaussians: one set (means (N, 3)) shared by
+    every camera, or B sets (means (B, N, 3)), the b-th rendered by the b-th camera.
+    features: None, (N, F) or (B, N, F); background: None, (3,) or (B, 3).
+    Returns a ``RasterOutput`` whose fields have a leading B.
+    """
+    g_axis = 0 if gaussians.means.ndim == 3 else None
+    f_axis = 0 if features is not None and features.ndim == 3 else None
+    b_axis = 0 if background is not None and jnp.ndim(background) == 2 else None
+    fn = partial(rasterize, width=width, height=height, config=config)
+    return jax.vmap(
+        lambda g, k, w, bg, f: fn(g, k, w, background=bg, features=f),
+        in_axes=(g_axis, 0, 0, b_axis, f_axis),
+    )(gaussians, Ks, world_to_cameras, background, features)
+
