@@ -1,0 +1,294 @@
+"""Batched Sim(3) registration of a complete candidate shape to a partial observation.
+
+The observation Q (observed surface samples of one instance) is given in a gravity frame
+(+z up, support plane horizontal); the candidate's points P in its own canonical frame,
+whose up axis and scale are unknown. A similarity S (x ↦ s R x + t) places P onto Q.
+
+Search (the paper's "Object candidates and registered assets"):
+
+1. Scale init per source-up axis from robust (2nd–98th percentile) extents of Q and P.
+2. Hypotheses: every signed source-up axis a (→ +z) × ``num_yaws`` yaws about +z × scale
+   multipliers; translation puts the candidate's horizontal box centre on Q's and its
+   lowest point on the support (or on Q's 2nd-percentile height). Each is scored by
+   E(S) = d_τ(SP, Q) + d_τ(Q, SP) on subsets of P and Q; all of them in one call.
+3. The ``top_k`` best hypotheses of every axis are refined: partial-to-complete
+   point-to-point ICP (each q ∈ Q matched to its nearest point of SP within
+   ``max_corr``; Kabsch), then scale and translation refinement with R fixed.
+4. Every refined hypothesis is scored again on the full point sets: E, its two terms,
+   and the observation support (fraction of Q within τ of SP).
+
+The host picks among the refined hypotheses (the candidate's own up = axis +z first, the
+other five axes on retry). Each step is written for one hypothesis and batched with
+``vmap`` (through ``lax.map(batch_size=...)``) in ``register``, the one jitted entry.
+Shapes are static: P has ``SearchSpec.model_points`` rows in random order (its leading
+rows are the sweep and ICP subsets), Q is padded to a power of two with a mask and its
+valid rows come first, in random order (its leading rows are the sweep subset).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kernels.chamfer import FAR, masked_mean, nearest_point, nearest_sq
+from kernels.pytree import pytree_dataclass
+
+# Signed source-up axes; index 0 (+z) is the candidate's own up, tried first by default.
+UP_AXES = np.array([[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], np.float64)
+AXIS_NAMES = ("+z", "+x", "-x", "+y", "-y", "-z")
+ROBUST_LO, ROBUST_HI = 0.02, 0.98  # paper: scale from the 2nd–98th percentile extents
+MIN_EXTENT = 1e-9                  # guards the extent ratio of a flat candidate
+MIN_CORRESPONDENCES = 3.0          # fewer than this (weighted) → keep the current pose
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchSpec:
+    """Static shape of one registration program (each distinct value compiles once).
+
+    Attributes:
+        axes: indices into ``UP_AXES`` searched in this call (all six: retry costs no call).
+        num_yaws: yaws per axis, evenly spaced (36 = the paper's 10°).
+        scale_multipliers: multipliers of the per-axis scale init.
+        top_k: hypotheses refined per axis.
+        model_points: rows of P (the paper's 20K).
+        sweep_model_points / sweep_obs_points: leading rows of P / Q scoring the sweep.
+        icp_model_points / icp_obs_points: leading rows of P / Q matched by the refinements.
+        icp_iterations / scale_iterations: fixed iteration counts of the two refinements.
+        rotation: "full" (3D Kabsch) or "yaw" (rotation about +z only) in ICP.
+        chunk: queries per brute-force nearest-neighbour block.
+        hypothesis_batch: hypotheses vmapped together (memory ∝ batch · chunk · targets).
+    """
+
+    axes: tuple[int, ...] = (0, 1, 2, 3, 4, 5)
+    num_yaws: int = 36
+    scale_multipliers: tuple[float, ...] = (0.85, 1.0, 1.15)
+    top_k: int = 1
+    model_points: int = 20_000
+    sweep_model_points: int = 512
+    sweep_obs_points: int = 512
+    icp_model_points: int = 2048
+    icp_obs_points: int = 2048
+    icp_iterations: int = 20
+    scale_iterations: int = 10
+    rotation: str = "full"
+    chunk: int = 256
+    hypothesis_batch: int = 36
+
+    @property
+    def hypotheses_per_axis(self) -> int:
+        return self.num_yaws * len(self.scale_multipliers)
+
+    @property
+    def num_hypotheses(self) -> int:
+        return len(self.axes) * self.hypotheses_per_axis
+
+
+@pytree_dataclass
+class Registration:
+    """Refined hypotheses of one candidate: R = len(axes) · top_k rows, axis-major."""
+
+    rotation: jax.Array      # (R, 3, 3)
+    translation: jax.Array   # (R, 3)
+    scale: jax.Array         # (R,)
+    energy: jax.Array        # (R,) E on the full sets
+    model_to_obs: jax.Array  # (R,) d_τ(SP, Q)
+    obs_to_model: jax.Array  # (R,) d_τ(Q, SP)
+    support: jax.Array       # (R,) fraction of Q within τ of SP
+    axis: jax.Array          # (R,) int32 index into UP_AXES
+    yaw: jax.Array           # (R,) initial yaw (radians) of the hypothesis it came from
+    scale_init: jax.Array    # (R,) robust-extent scale init of its axis
+    sweep_energy: jax.Array  # (A, num_yaws · M) E of every hypothesis of the sweep
+
+
+# --- host constants ------------------------------------------------------------------
+
+
+def axis_rotation(axis: np.ndarray) -> np.ndarray:
+    """(3, 3) proper rotation taking the unit ``axis`` to +z (a 90° or 180° turn for ±x, ±y, −z)."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.asarray(axis, np.float64)
+    if np.allclose(axis, z):
+        return np.eye(3)
+    if np.allclose(axis, -z):
+        return np.diag([1.0, -1.0, -1.0])  # 180° about x
+    k = np.cross(axis, z)
+    k /= np.linalg.norm(k)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + K + K @ K  # Rodrigues with sin = 1, cos = 0 (axis ⟂ z)
+
+
+def yaw_matrix(yaw):
+    """(..., 3, 3) rotation about +z."""
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    return jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1),
+                      jnp.stack([zero, zero, one], -1)], -2)
+
+
+# --- pieces for one hypothesis -------------------------------------------------------
+
+
+def robust_extents(points, mask):
+    """Height (z) and the two horizontal extents along the xy principal axes, each the
+    2nd–98th percentile range of the valid points. → (3,) [h, w_major, w_minor]."""
+    w = mask.astype(points.dtype)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    xy = points[:, :2]
+    centred = xy - jnp.sum(xy * w[:, None], 0) / n
+    cov = (centred * w[:, None]).T @ centred / n
+    _, vecs = jnp.linalg.eigh(cov)                 # ascending eigenvalues
+    proj = centred @ vecs[:, ::-1]                  # major axis first
+    coords = jnp.concatenate([points[:, 2:3], proj], axis=1)
+    coords = jnp.where(mask[:, None], coords, jnp.nan)
+    lo, hi = jnp.nanquantile(coords, jnp.array([ROBUST_LO, ROBUST_HI]), axis=0)
+    return hi - lo
+
+
+def scale_init(model, obs_extents):
+    """Median of the three extent ratios observed / model (model already rotated to its up)."""
+    model_extents = robust_extents(model, jnp.ones(model.shape[0], bool))
+    ratios = obs_extents / jnp.maximum(model_extents, MIN_EXTENT)
+    return jnp.sum(ratios) - jnp.max(ratios) - jnp.min(ratios)
+
+
+def place(model, rotation, scale, centre_xy, base_z):
+    """Translation putting s R P's horizontal box centre at ``centre_xy`` and its lowest
+    point at ``base_z``. → (3,)."""
+    x = scale * model @ rotation.T
+    lo, hi = jnp.min(x, axis=0), jnp.max(x, axis=0)
+    return jnp.concatenate([centre_xy - 0.5 * (lo[:2] + hi[:2]), (base_z - lo[2])[None]])
+
+
+def hypothesis_energy(model, obs, obs_mask, rotation, scale, translation, tau, chunk: int):
+    """E(S) = d_τ(SP, Q) + d_τ(Q, SP) of one hypothesis; → (E, d_τ(SP, Q), d_τ(Q, SP), support)."""
+    x = scale * model @ rotation.T + translation
+    d2_mq = nearest_sq(x, obs, obs_mask, chunk)
+    d2_qm = nearest_sq(obs, x, None, chunk)
+    mq = jnp.mean(jnp.minimum(jnp.sqrt(d2_mq), tau))
+    qm = masked_mean(jnp.minimum(jnp.sqrt(d2_qm), tau), obs_mask)
+    support = masked_mean((d2_qm <= tau * tau).astype(obs.dtype), obs_mask)
+    return mq + qm, mq, qm, support
+
+
+def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk):
+    """Each q's nearest point of S P (placed), and its weight: 1 when q is valid and the match
+    is within ``max_corr``, else 0. → (Nq, 3), (Nq,)."""
+    x = scale * model @ rotation.T + translation
+    d2, matched = nearest_point(obs, x, None, chunk)
+    weight = (obs_mask & (d2 <= max_corr * max_corr) & (d2 < FAR)).astype(obs.dtype)
+    return matched, weight
+
+
+def _kabsch(src, dst, weight, yaw_only: bool):
+    """Weighted rigid (R, t) minimising Σ w ‖R src + t − dst‖² (R about +z only if yaw_only)."""
+    n = jnp.maximum(jnp.sum(weight), 1e-12)
+    cs = jnp.sum(src * weight[:, None], 0) / n
+    cd = jnp.sum(dst * weight[:, None], 0) / n
+    a, b = src - cs, dst - cd
+    if yaw_only:
+        cross = jnp.sum(weight * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+        dot = jnp.sum(weight * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+        rot = yaw_matrix(jnp.arctan2(cross, dot))
+    else:
+        h = (a * weight[:, None]).T @ b
+        u, _, vt = jnp.linalg.svd(h)
+        d = jnp.sign(jnp.linalg.det(vt.T @ u.T))
+        rot = vt.T @ jnp.diag(jnp.array([1.0, 1.0, 0.0], h.dtype) + d * jnp.array([0.0, 0.0, 1.0], h.dtype)) @ u.T
+    ok = jnp.sum(weight) >= MIN_CORRESPONDENCES
+    rot = jnp.where(ok, rot, jnp.eye(3, dtype=src.dtype))
+    return rot, jnp.where(ok, cd - rot @ cs, 0.0)
+
+
+def icp(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations: int,
+        yaw_only: bool, chunk: int):
+    """Partial-to-complete point-to-point ICP with the scale fixed. → (R, t)."""
+
+    def step(_, state):
+        rot, trans = state
+        placed, weight = _correspondences(model, obs, obs_mask, rot, scale, trans, max_corr, chunk)
+        d_rot, d_trans = _kabsch(placed, obs, weight, yaw_only)
+        return d_rot @ rot, d_rot @ trans + d_trans
+
+    return jax.lax.fori_loop(0, iterations, step, (rotation, translation))
+
+
+def refine_scale(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations: int,
+                 chunk: int):
+    """Scale and translation refinement with R fixed: closed-form least squares per step. → (s, t)."""
+
+    def step(_, state):
+        s, trans = state
+        placed, weight = _correspondences(model, obs, obs_mask, rotation, s, trans, max_corr, chunk)
+        y = (placed - trans) / s  # R p of each match
+        n = jnp.maximum(jnp.sum(weight), 1e-12)
+        cy = jnp.sum(y * weight[:, None], 0) / n
+        cq = jnp.sum(obs * weight[:, None], 0) / n
+        a, b = y - cy, obs - cq
+        num = jnp.sum(weight * jnp.sum(a * b, 1))
+        den = jnp.sum(weight * jnp.sum(a * a, 1))
+        ok = (jnp.sum(weight) >= MIN_CORRESPONDENCES) & (num > 0) & (den > 0)
+        s_new = jnp.where(ok, num / jnp.where(den > 0, den, 1.0), s)
+        return s_new, jnp.where(ok, cq - s_new * cy, trans)
+
+    return jax.lax.fori_loop(0, iterations, step, (scale, translation))
+
+
+# --- the batched program -------------------------------------------------------------
+
+
+def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: SearchSpec) -> Registration:
+    """Search, refine and score; see the module docstring. ``spec`` is static.
+
+    model (model_points, 3) canonical, random order; obs (Nq, 3) gravity frame, valid rows
+    first; obs_mask (Nq,); support_z () height of the support plane, used when has_support.
+    """
+    dtype = obs.dtype
+    p_sweep = model[: spec.sweep_model_points]
+    p_icp = model[: spec.icp_model_points]
+    nq_sweep = min(spec.sweep_obs_points, obs.shape[0])
+    q_sweep, m_sweep = obs[:nq_sweep], obs_mask[:nq_sweep]
+    nq_icp = min(spec.icp_obs_points, obs.shape[0])
+    q_icp, m_icp = obs[:nq_icp], obs_mask[:nq_icp]
+
+    q = jnp.where(obs_mask[:, None], obs, jnp.nan)
+    q_lo, q_hi = jnp.nanquantile(q, jnp.array([ROBUST_LO, ROBUST_HI]), axis=0)
+    centre_xy = 0.5 * (q_lo[:2] + q_hi[:2])
+    base_z = jnp.where(has_support, support_z, q_lo[2])
+    obs_ext = robust_extents(obs, obs_mask)
+
+    axis_rots = jnp.asarray(np.stack([axis_rotation(UP_AXES[a]) for a in spec.axes]), dtype)
+    s0 = jax.vmap(lambda r: scale_init(p_icp @ r.T, obs_ext))(axis_rots)  # (A,)
+
+    yaws = jnp.arange(spec.num_yaws, dtype=dtype) * (2 * np.pi / spec.num_yaws)
+    mults = jnp.asarray(spec.scale_multipliers, dtype)
+    a_idx, y_idx, m_idx = (g.reshape(-1) for g in jnp.meshgrid(
+        jnp.arange(len(spec.axes)), jnp.arange(spec.num_yaws), jnp.arange(len(mults)), indexing="ij"))
+    rots = yaw_matrix(yaws[y_idx]) @ axis_rots[a_idx]      # (H, 3, 3)
+    scales = s0[a_idx] * mults[m_idx]                        # (H,)
+
+    def sweep_one(h):
+        rot, s = h
+        t = place(p_sweep, rot, s, centre_xy, base_z)
+        return hypothesis_energy(p_sweep, q_sweep, m_sweep, rot, s, t, tau, spec.chunk)[0]
+
+    energy = jax.lax.map(sweep_one, (rots, scales), batch_size=spec.hypothesis_batch)
+    per_axis = energy.reshape(len(spec.axes), spec.hypotheses_per_axis)
+    _, best = jax.lax.top_k(-per_axis, spec.top_k)                                  # (A, k)
+    pick = (best + jnp.arange(len(spec.axes))[:, None] * spec.hypotheses_per_axis).reshape(-1)
+
+    def refine_one(h):
+        rot, s = h
+        t = place(p_icp, rot, s, centre_xy, base_z)
+        rot, t = icp(p_icp, q_icp, m_icp, rot, s, t, max_corr, spec.icp_iterations,
+                     spec.rotation == "yaw", spec.chunk)
+        s, t = refine_scale(p_icp, q_icp, m_icp, rot, s, t, max_corr, spec.scale_iterations, spec.chunk)
+        e, mq, qm, sup = hypothesis_energy(model, obs, obs_mask, rot, s, t, tau, spec.chunk)
+        return rot, t, s, e, mq, qm, sup
+
+    rot, t, s, e, mq, qm, sup = jax.lax.map(refine_one, (rots[pick], scales[pick]),
+                                            batch_size=min(spec.hypothesis_batch, len(pick)))
+    axis_ids = jnp.asarray(spec.axes, jnp.int32)[a_idx[pick]]
+    return Registration(rot, t, s, e, mq, qm, sup, axis_ids, yaws[y_idx[pick]], s0[a_idx[pick]], per_axis)
