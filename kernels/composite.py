@@ -6,7 +6,9 @@ number of *slots* (a work queue inside ``lax.while_loop``): a slot keeps working
 tile until every pixel is saturated or the list ends, then writes the tile out and
 takes the next tile (longest lists first). So the work is bounded by what each tile
 needs (early exit per tile), no tile waits for the slowest one, and every shape is
-static. CPU wants few slots (little wasted work), a GPU many (occupancy).
+static. Idle slots still compute (masked), so a CPU wants few; a GPU wants enough to
+fill it, but not so many that most of them idle while the longest tiles finish
+(``kernels.raster.RasterConfig.resolved_slots``).
 
 Rules (INRIA 3DGS): α = min(0.99, o·exp(−½ dᵀΣ⁻¹d)); α < 1/255 is skipped; a Gaussian
 whose inclusion would bring the transmittance below 1e-4 is not added and the pixel
@@ -143,9 +145,11 @@ def _forward_chunk(state, pix, params, valid, pos):
 def _forward_chunk_sequential(state, pix, params, valid, pos):
     """Same result as ``_forward_chunk``, as the literal 3DGS loop unrolled over the chunk.
 
-    Every step is elementwise over the tile's pixels, so XLA fuses the whole chunk into
-    one kernel with no (P, B) intermediates in memory: about 3× faster on a GPU with
-    thousands of tiles in flight, but slower to compile and no faster on a CPU.
+    Every step is elementwise over the tile's pixels, so XLA can fuse the whole chunk
+    into one kernel with no (P, B) intermediates in memory. On an H100 that was 3× faster
+    for 2048 tiles in isolation, but inside the queue loop its speed swung with the slot
+    count (from 0.8× to 7× the time of ``_forward_chunk``) and it compiled 5–15× slower;
+    on a CPU it is no faster. Hence opt-in (``RasterConfig.sequential``).
     """
     trans, done, acc, last = state
     feats = params[:, NUM_GEOMETRY:]
@@ -256,8 +260,8 @@ def composite_forward(grid: TileGrid, slots: int, chunk: int, params, lists: Til
     """Forward pass over every tile.  params (N, D) →
     acc (NT, P, CH), T (NT, P), last (NT, P) int32, steps () int32 (loop iterations).
 
-    sequential: composite each chunk with ``_forward_chunk_sequential`` (GPU) instead of
-    ``_forward_chunk`` (CPU); the results agree to float rounding.
+    sequential: composite each chunk with ``_forward_chunk_sequential`` instead of
+    ``_forward_chunk``; the results agree to float rounding.
     """
     chunk_fn = _forward_chunk_sequential if sequential else _forward_chunk
     nt, npix = grid.num_tiles, grid.tile_pixels

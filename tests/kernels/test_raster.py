@@ -1,5 +1,5 @@
 """The tile rasterizer against a slow per-pixel NumPy reference, finite differences and
-its own properties (padding, constant features, overflow reporting, batching)."""
+its own properties (constant features, overflow reporting, batching)."""
 
 from __future__ import annotations
 
@@ -196,23 +196,11 @@ def test_matches_reference(scene_and_reference, name):
                                1.0 - ref["alpha"][sat], rtol=SATURATED_T_RTOL)
 
 
-def test_constant_feature_is_alpha_and_padding_changes_nothing(scene_and_reference):
+def test_constant_feature_composites_to_alpha(scene_and_reference):
     g, feats, K, w2c, bg, _ = scene_and_reference
     out = render(g, K, w2c, width=WIDTH, height=HEIGHT, background=bg, features=feats,
                  config=DEFAULT)
-    # The constant feature channel composites to Σ w = alpha.
-    np.testing.assert_allclose(out.features[..., 2], out.alpha, atol=1e-5)
-    # Transparent padding (opacity logit −1e4) changes nothing and takes no capacity.
-    n, pad = g.num, 40
-    padded = jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]), g)
-    padded = padded.replace(opacity_logits=padded.opacity_logits.at[n:].set(-1e4))
-    padded_feats = jnp.concatenate([feats, jnp.ones((pad, feats.shape[1]))])
-    out2 = render(padded, K, w2c, width=WIDTH, height=HEIGHT, background=bg,
-                  features=padded_feats, config=DEFAULT)
-    for key in ("rgb", "depth", "alpha", "features"):
-        np.testing.assert_array_equal(getattr(out2, key), getattr(out, key))
-    assert int(out2.num_intersections) == int(out.num_intersections)
-    assert int(out2.num_visible) == int(out.num_visible)
+    np.testing.assert_allclose(out.features[..., 2], out.alpha, atol=1e-5)  # Σ w = 1 − T
 
 
 def test_normalized_depth_of_a_fronto_parallel_layer():
@@ -267,7 +255,7 @@ def _weights(rng, width, height, f, dtype):
     }
 
 
-@pytest.mark.parametrize("backward", ["custom", "autodiff"])
+@pytest.mark.parametrize("backward", ["custom", pytest.param("autodiff", marks=pytest.mark.slow)])
 def test_gradients_match_finite_differences(x64, backward):
     width, height = 40, 30
     g, feats = random_scene(seed=11, n=24, degree=2, dtype=np.float64, spread=0.5)
