@@ -72,7 +72,7 @@ def time_jax(data, repeats: int) -> dict:
     run_s = statistics.median(runs)
     return {"backend": jax.default_backend(), "device": str(jax.devices()[0]), "compile_s": round(compile_s, 3),
             "run_s": round(run_s, 4), "runs_s": [round(r, 4) for r in runs], "voxels": voxels,
-            "frames": int(len(data["depths"])),
+            "frames": len(data["depths"]),
             "voxel_updates_per_s": round(voxels * len(depths) / run_s, 1)}
 
 
