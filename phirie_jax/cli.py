@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from phirie_jax.config import ObserveConfig
 from phirie_jax.errors import SceneInputError
 
 Scene = Annotated[Path, tyro.conf.Positional]
@@ -106,6 +107,66 @@ def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
     print(f"wrote {out} ({cam.width}×{cam.height}, camera {camera}: {cam.name})")
 
 
+def _print_instances(manifest: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="instances")
+    for column in ("id", "category", "views", "points", "confidence", "source"):
+        table.add_column(column)
+    for inst in manifest.get("instances", []):
+        table.add_row(str(inst["id"]), str(inst.get("category") or "—"), str(len(inst["views"])),
+                      f"{inst['num_points']:,}", f"{inst.get('confidence', float('nan')):.2f}",
+                      str(inst.get("source")))
+    console = Console()
+    console.print(table)
+    rejected = manifest.get("observe", {}).get("rejected_proposals", [])
+    timings = ", ".join(f"{k} {v:.1f} s" for k, v in manifest.get("timings", {}).items())
+    console.print(f"{len(rejected)} proposals rejected (reasons in manifest.json); {timings}")
+
+
+def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
+            surface: Path | None = None, config: ObserveConfig = ObserveConfig()) -> None:
+    """Scene Observation alone: masks → first-hit lifting onto the surface → voxel association
+    into object instances (manifest.json `instances`, observe/instance_<id>.npz).
+
+    Args:
+        scene: a scene folder.
+        out: output folder (manifest.json is created or updated).
+        masks: "files" (masks/ or ScanNet++ annotations), "auto" (support planes + clusters,
+            no learned weights), or a folder of an external segmenter's <image stem>.png
+            (+ <image stem>.json); default: files when the scene has them, else auto.
+        gaussians: Gaussian PLY to use instead of the one found in the folder.
+        surface: scene surface mesh to use instead of the one found (none: built from the splats).
+        config: observation parameters (defaults: the paper's numbers).
+    """
+    from phirie_jax.io.scene import load_scene
+    from phirie_jax.observe import run_observe
+
+    loaded = load_scene(scene, gaussians=gaussians, surface=surface)
+    _print_instances(run_observe(scene, out, config, masks=masks, scene=loaded))
+
+
+def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
+            surface: Path | None = None, observe: ObserveConfig = ObserveConfig()) -> None:
+    """Scene → interactive scene. Runs the stages in order, each adding to OUT/manifest.json:
+    observe (instances).
+
+    Args:
+        scene: a scene folder.
+        out: output folder.
+        masks: mask source for observation: "files", "auto" or an external segmenter's folder.
+        gaussians: Gaussian PLY to use instead of the one found in the folder.
+        surface: scene surface mesh to use instead of the one found.
+        observe: observation parameters.
+    """
+    from phirie_jax.io.scene import load_scene
+    from phirie_jax.observe import run_observe
+
+    loaded = load_scene(scene, gaussians=gaussians, surface=surface)
+    _print_instances(run_observe(scene, out, observe, masks=masks, scene=loaded))
+
+
 def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large"] = "default",
          seed: int = 0) -> None:
     """The whole job on the embedded default scene (what `make demo` runs).
@@ -120,7 +181,8 @@ def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large
     run_demo(out, preset=preset, seed=seed)
 
 
-COMMANDS = {"info": info, "synth": synth, "render": render, "demo": demo}
+COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
+            "convert": convert, "demo": demo}
 
 
 def main(argv: list[str] | None = None) -> int:

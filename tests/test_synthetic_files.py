@@ -83,11 +83,20 @@ def test_masks_are_16_bit_ids_that_follow_the_objects(tiny_dir):
 def test_cli_synth_render_and_info(tmp_path, tiny_dir, capsys):
     out, _ = tiny_dir
     image = tmp_path / "view.png"
-    assert main(["render", str(out), "--camera", "2", "--out", str(image), "--width", "32"]) == 0
+    assert main(["render", str(out), "--camera", "2", "--out", str(image), "--width", "64"]) == 0
     rendered = cv2.imread(str(image))
-    assert rendered.shape == (24, 32, 3) and rendered.std() > 5
+    assert rendered.shape == (48, 64, 3) and rendered.std() > 5
     assert main(["render", str(out), "--camera", "99", "--out", str(image)]) == 2
-    assert "--camera: 99 (expected 0..7)" in capsys.readouterr().err
+    assert "--camera: 99 (expected 0..11)" in capsys.readouterr().err
     assert main(["info", str(out), "--json"]) == 0
     facts = json.loads(capsys.readouterr().out)
-    assert facts["masks"] == {"found": 8, "cameras": 8} and facts["surface_mesh"]["faces"] > 0
+    assert facts["masks"] == {"found": 12, "cameras": 12} and facts["surface_mesh"]["faces"] > 0
+
+
+def test_cli_observe_finds_every_object_of_the_tiny_scene(tmp_path, tiny_dir, capsys):
+    out, scene = tiny_dir
+    assert main(["observe", str(out), "--out", str(tmp_path / "obs")]) == 0
+    manifest = json.loads((tmp_path / "obs" / "manifest.json").read_text())
+    assert manifest["schema"] == "phirie/1"
+    assert sorted(i["id"] for i in manifest["instances"]) == [o.id for o in scene.objects]
+    assert all(len(i["views"]) >= 2 for i in manifest["instances"])

@@ -63,7 +63,7 @@ class SynthConfig:
 
 
 PRESETS = {
-    "tiny": SynthConfig(num_objects=(3, 3), num_cameras=8, rings=((1.2, 1.35),), width=64, height=48,
+    "tiny": SynthConfig(num_objects=(3, 3), num_cameras=12, rings=((1.2, 1.35), (0.9, 1.5)), width=128, height=96,
                         object_spacing=0.008, table_spacing=0.018, floor_spacing=0.06,
                         floor_size=2.0, floaters=8, boundary_blobs=6),
     "default": SynthConfig(),
