@@ -4,9 +4,10 @@ Pipeline for one camera (``rasterize``), all static shapes:
 
 1. ``project_gaussians``: EWA projection, 3σ radius, tile rectangle, SH colour.
 2. ``bin_gaussians``: sort visible Gaussians by view depth, expand each into its
-   tile intersections in that order (into a buffer of ``capacity`` slots), then
-   stably sort the slots by tile id. Each tile's list is thus depth-ordered; its
-   range comes from a histogram of tile ids. Non-differentiable bookkeeping.
+   tile intersections in that order (into a buffer of ``capacity`` slots; each slot
+   finds its Gaussian by a running max, O(C)), then stably sort the slots by tile
+   id. Each tile's list is thus depth-ordered; its range is found by searching the
+   sorted ids. Non-differentiable bookkeeping.
 3. ``composite``: per-tile front-to-back compositing through a work queue of
    tiles with early exit, with a recompute-based custom VJP (``kernels.composite``).
 

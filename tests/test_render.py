@@ -142,6 +142,13 @@ def test_render_batch_equals_a_loop_of_renders(renderer):
     for b, cam in enumerate(cams):
         assert_same_images(jax_index(batch, b),
                            renderer.render(g, cam, background=bg, features=feats))
+
+
+@pytest.mark.slow  # one more vmapped program; the kernel test covers paired sets too
+def test_render_batch_of_sets_equals_a_loop_of_renders(renderer):
+    cams = [make_camera(eye, name=str(i)) for i, eye in
+            enumerate([(0.0, -2.5, 0.6), (2.0, -1.0, 0.3), (-1.5, 1.8, 1.2)])]
+    bg = (0.5, 0.5, 0.5)
     # B Gaussian sets of equal size, one per camera (and one feature set each).
     sets = [blob_scene(s, 180) for s in (7, 8, 9)]
     batch = renderer.render_batch([s[0] for s in sets], cams, background=bg,
