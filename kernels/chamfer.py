@@ -123,7 +123,7 @@ def build_grid(targets, target_mask, cell, table_size: int = 4096, capacity: int
 _OFFSETS = jnp.stack(jnp.meshgrid(*[jnp.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(27, 3)
 
 
-def nearest_grid(queries, grid: Grid):
+def nearest_grid(queries, grid: Grid, chunk: int = 256):
     """Squared distance from each query (Nq, 3) to its nearest target: exact below ``grid.cell``²
     (when ``grid.overflow`` is false), ≥ cell² otherwise. → (Nq,)."""
     table_size = grid.start.shape[0]
@@ -141,7 +141,7 @@ def nearest_grid(queries, grid: Grid):
         d2 = sq_dists(q[None, :], grid.points[idx])[0]
         return jnp.min(d2)
 
-    return jax.vmap(one)(queries)
+    return _chunked(queries, chunk, jax.vmap(one))
 
 
 # --- scores --------------------------------------------------------------------------

@@ -1,0 +1,116 @@
+"""The gravity frame and each instance's support plane.
+
+Registration and the built-in generators work in a gravity frame: world rotated so that
+"up" is +z (no translation). Up comes from the observation stage when it estimated one
+(automatic masks), else from the cameras' mean image-up; it is then refined by the
+normal of the surface the instances stand on.
+
+Support of an instance: rays cast straight down onto the scene surface around its
+footprint (a ring 1.5–6 cm outside Q's robust box) hit what it stands on; the support
+height is the median height of the hits near Q's lowest points. Without a surface
+(or hits), the support is Q's 2nd-percentile height and says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+RING_INNER, RING_OUTER = 0.015, 0.06   # ring around the footprint, metres
+RING_RAYS = 24                         # rays per side of the ring's sampling grid
+SUPPORT_BAND = 0.03                    # hits within this of Q's base height count
+MIN_PLANE_HITS = 20                    # to refine up from the support's normal
+MAX_UP_CHANGE_DEG = 15.0               # refinement never moves up more than this
+
+
+@dataclasses.dataclass(frozen=True)
+class GravityFrame:
+    rotation: np.ndarray  # (3, 3) world → gravity (x_g = R x_w); R @ up = +z
+    up: np.ndarray        # (3,) world up
+    source: str           # where up came from
+
+    def to_gravity(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.rotation.T
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.rotation
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) gravity → world."""
+        out = np.eye(4)
+        out[:3, :3] = self.rotation.T
+        return out
+
+
+def rotation_to_z(up: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking unit ``up`` to +z."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    z = np.array([0.0, 0.0, 1.0])
+    c = float(up @ z)
+    if c > 1 - 1e-12:
+        return np.eye(3)
+    if c < -1 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    k = np.cross(up, z)
+    s = np.linalg.norm(k)
+    k /= s
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
+@dataclasses.dataclass(frozen=True)
+class Support:
+    height: float         # support plane height in the gravity frame
+    source: str           # "surface" (rays onto the scene surface) or "observed points"
+    hits: int             # rays that hit the support
+    normal: np.ndarray    # (3,) gravity-frame normal of the fitted plane (+z without a fit)
+
+
+def _ring_origins(q_gravity: np.ndarray) -> np.ndarray:
+    lo, hi = np.percentile(q_gravity, [2, 98], axis=0)
+    xs = np.linspace(lo[0] - RING_OUTER, hi[0] + RING_OUTER, RING_RAYS)
+    ys = np.linspace(lo[1] - RING_OUTER, hi[1] + RING_OUTER, RING_RAYS)
+    xx, yy = np.meshgrid(xs, ys, indexing="ij")
+    xy = np.stack([xx.ravel(), yy.ravel()], 1)
+    outside = np.any((xy < lo[:2] - RING_INNER) | (xy > hi[:2] + RING_INNER), axis=1)
+    xy = xy[outside]
+    return np.concatenate([xy, np.full((len(xy), 1), hi[2] + 0.1)], axis=1)
+
+
+def find_support(q_gravity: np.ndarray, frame: GravityFrame, raycaster=None) -> Support:
+    """The plane instance Q stands on (see the module docstring)."""
+    base = float(np.percentile(q_gravity[:, 2], 2))
+    if raycaster is not None and len(q_gravity) >= 3:
+        origins = _ring_origins(q_gravity)
+        down = np.tile(frame.to_world(np.array([[0.0, 0.0, -1.0]])), (len(origins), 1))
+        hits = raycaster.cast(frame.to_world(origins), down)
+        points = frame.to_gravity(hits.points[hits.hit])
+        near = points[np.abs(points[:, 2] - base) <= SUPPORT_BAND] if len(points) else points
+        if len(near):
+            normal = np.array([0.0, 0.0, 1.0])
+            if len(near) >= MIN_PLANE_HITS:
+                centred = near - near.mean(0)
+                normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
+                normal = normal if normal[2] > 0 else -normal
+            return Support(float(np.median(near[:, 2])), "surface", int(len(near)), normal)
+    return Support(base, "observed points", 0, np.array([0.0, 0.0, 1.0]))
+
+
+def gravity_frame(up_guess: np.ndarray, source: str) -> GravityFrame:
+    up = np.asarray(up_guess, np.float64)
+    up = up / np.linalg.norm(up)
+    return GravityFrame(rotation_to_z(up), up, source)
+
+
+def refine_frame(frame: GravityFrame, supports: list[Support]) -> GravityFrame:
+    """Up refined to the mean normal of the fitted supports (when close to the guess)."""
+    normals = [s.normal * s.hits for s in supports if s.source == "surface" and s.hits >= MIN_PLANE_HITS]
+    if not normals:
+        return frame
+    n = np.sum(normals, axis=0)
+    n /= np.linalg.norm(n)
+    if np.degrees(np.arccos(np.clip(n[2], -1, 1))) > MAX_UP_CHANGE_DEG:
+        return frame
+    up = frame.to_world(n[None])[0]
+    return GravityFrame(rotation_to_z(up), up / np.linalg.norm(up), frame.source + "+support plane")

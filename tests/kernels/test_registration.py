@@ -1,0 +1,163 @@
+"""Registration kernels: E against a NumPy reference, Kabsch/ICP/scale refinement properties,
+recovery of a known Sim(3) from a partial view for every up axis, the batched retry, and
+one compiled program per shape bucket."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from kernels.registration import (AXIS_NAMES, UP_AXES, SearchSpec, _kabsch, axis_rotation, hypothesis_energy,
+                                  icp, refine_scale, register, robust_extents, scale_init, yaw_matrix)
+from tests.kernels.shapes import in_random_frame, l_shape, padded, partial_view
+
+TAU = 0.03
+MAX_CORR = 0.06
+ROT_TOL_DEG = 3.0     # rotation recovered to within this
+SCALE_TOL = 0.02      # relative
+TRANS_TOL = 0.006     # metres
+# a smaller program than the paper's (fast CPU tests); same search: 6 axes × 36 yaws × 3 scales
+TEST_SPEC = SearchSpec(model_points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024,
+                       icp_obs_points=1024, score_obs_points=1024, hypothesis_batch=108, snap_to_support=True)
+TRACES = {"register": 0}
+
+
+def _traced(model, obs, mask, support_z, has_support, tau, max_corr, spec):
+    TRACES["register"] += 1
+    return register(model, obs, mask, support_z, has_support, tau, max_corr, spec)
+
+
+_register = jax.jit(_traced, static_argnames=("spec",))
+
+
+def run(model, q, bucket=1024, spec=TEST_SPEC):
+    obs, mask = padded(q, bucket)
+    return jax.device_get(_register(jnp.asarray(model), jnp.asarray(obs), jnp.asarray(mask), jnp.float32(0.0),
+                                    jnp.bool_(True), jnp.float32(TAU), jnp.float32(MAX_CORR), spec=spec))
+
+
+def rotation_angle_deg(a, b):
+    cos = (np.trace(a.T @ b) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+
+
+def sim3_error(result, row, truth):
+    scale_t = np.cbrt(np.linalg.det(truth[:3, :3]))
+    return (rotation_angle_deg(np.asarray(result.rotation[row]), truth[:3, :3] / scale_t),
+            abs(float(result.scale[row]) / scale_t - 1), float(np.abs(result.translation[row] - truth[:3, 3]).max()))
+
+
+@pytest.fixture(scope="module")
+def shape():
+    rng = np.random.default_rng(0)
+    points, normals = l_shape(8000, rng)
+    q = partial_view(points, normals, 900, rng)
+    return points, q[rng.permutation(len(q))]
+
+
+def test_axis_rotations_are_proper_and_take_the_axis_up():
+    for axis in UP_AXES:
+        r = axis_rotation(axis)
+        np.testing.assert_allclose(r @ axis, [0, 0, 1], atol=1e-12)
+        np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+def test_energy_matches_numpy_reference():
+    rng = np.random.default_rng(1)
+    model = rng.normal(0, 1, (300, 3)).astype(np.float32)
+    obs = (rng.normal(0, 0.05, (200, 3)) + [0.2, 0.1, 0.5]).astype(np.float32)
+    mask = np.arange(256) < 200
+    obs_p, _ = padded(obs, 256)
+    rot = np.asarray(yaw_matrix(jnp.float32(0.7))) @ axis_rotation(UP_AXES[3])
+    s, t = 0.05, np.float32([0.2, 0.1, 0.5])
+    e, mq, qm, sup = hypothesis_energy(jnp.asarray(model), jnp.asarray(obs_p), jnp.asarray(mask),
+                                       jnp.asarray(rot, jnp.float32), jnp.float32(s), jnp.asarray(t), TAU, 64)
+    placed = s * model.astype(np.float64) @ rot.T + t
+    d_mq = np.array([np.min(np.linalg.norm(obs - p, axis=1)) for p in placed])
+    d_qm = np.array([np.min(np.linalg.norm(placed - q, axis=1)) for q in obs])
+    ref_mq, ref_qm = np.minimum(d_mq, TAU).mean(), np.minimum(d_qm, TAU).mean()
+    np.testing.assert_allclose([float(mq), float(qm), float(e)], [ref_mq, ref_qm, ref_mq + ref_qm], atol=2e-6)
+    assert float(sup) == pytest.approx(np.mean(d_qm <= TAU), abs=1e-6)
+
+
+def test_scale_init_recovers_a_known_scale_whatever_the_yaw():
+    rng = np.random.default_rng(2)
+    points, _ = l_shape(4000, rng)
+    obs = 3.7 * points @ np.asarray(yaw_matrix(jnp.float32(1.1))).T
+    ext = robust_extents(jnp.asarray(obs, jnp.float32), jnp.ones(len(obs), bool))
+    assert float(scale_init(jnp.asarray(points, jnp.float32), ext)) == pytest.approx(3.7, rel=1e-3)
+
+
+@pytest.mark.parametrize("yaw_only", [False, True])
+def test_kabsch_recovers_an_exact_rigid_motion(yaw_only):
+    rng = np.random.default_rng(3)
+    src = rng.normal(0, 1, (50, 3))
+    if yaw_only:
+        rot = np.asarray(yaw_matrix(jnp.float32(2.0)), np.float64)
+    else:
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        rot = q * np.sign(np.linalg.det(q))
+    t = np.array([0.3, -1.0, 2.0])
+    dst = src @ rot.T + t
+    r_est, t_est = _kabsch(jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32), jnp.ones(50), yaw_only)
+    np.testing.assert_allclose(np.asarray(r_est), rot, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(t_est), t, atol=1e-4)
+
+
+def test_icp_and_scale_refinement_converge_from_a_nearby_start(shape):
+    points, q = shape
+    model = jnp.asarray(points[np.random.default_rng(4).permutation(len(points))[:2000]], jnp.float32)
+    obs, mask = (jnp.asarray(x) for x in padded(q, 1024))
+    start = np.asarray(yaw_matrix(jnp.float32(np.radians(8.0))))
+    rot, t = icp(model, obs, mask, jnp.asarray(start, jnp.float32), jnp.float32(1.0), jnp.float32([0.01, -0.008, 0.0]),
+                 jnp.float32(MAX_CORR), 30, False, 256)
+    assert rotation_angle_deg(np.asarray(rot), np.eye(3)) < 1.0
+    np.testing.assert_allclose(np.asarray(t), 0.0, atol=0.003)
+    s, t2 = refine_scale(model, obs, mask, jnp.eye(3), jnp.float32(1.1), jnp.zeros(3), jnp.float32(MAX_CORR), 15, 256)
+    assert float(s) == pytest.approx(1.0, abs=0.01)
+
+
+@pytest.mark.parametrize("axis", range(6))
+def test_known_sim3_is_recovered_from_a_partial_view_for_every_up_axis(shape, axis):
+    points, q = shape
+    rng = np.random.default_rng(10 + axis)
+    model, truth = in_random_frame(points, axis, rng)
+    result = run(model[rng.permutation(len(model))][: TEST_SPEC.model_points], q)
+    best = int(np.argmin(result.energy))
+    assert AXIS_NAMES[int(result.axis[best])] == AXIS_NAMES[axis]
+    rot_err, scale_err, trans_err = sim3_error(result, best, truth)
+    assert rot_err < ROT_TOL_DEG and scale_err < SCALE_TOL and trans_err < TRANS_TOL
+    assert float(result.support[best]) > 0.95 and float(result.energy[best]) < 0.012
+
+
+def test_retry_fixes_a_wrong_up_axis_and_costs_no_second_call(shape):
+    points, q = shape
+    rng = np.random.default_rng(20)
+    model, truth = in_random_frame(points, 3, rng)  # the file's up is +y, not its own +z
+    model = model[rng.permutation(len(model))][: TEST_SPEC.model_points]
+    own = run(model, q, spec=TEST_SPEC.__class__(**{**TEST_SPEC.__dict__, "axes": (0,)}))
+    every = run(model, q)
+    assert int(every.axis[0]) == 0 and float(every.energy[0]) == pytest.approx(float(own.energy[0]), abs=1e-3)
+    best = int(np.argmin(every.energy))
+    assert AXIS_NAMES[int(every.axis[best])] == "+y"
+    assert float(own.energy[0]) > 2 * float(every.energy[best])  # the own-up answer is visibly worse
+    rot_err, scale_err, trans_err = sim3_error(every, best, truth)
+    assert rot_err < ROT_TOL_DEG and scale_err < SCALE_TOL and trans_err < TRANS_TOL
+    assert rotation_angle_deg(np.asarray(own.rotation[0]), truth[:3, :3] / np.cbrt(np.linalg.det(truth[:3, :3]))) > 30
+
+
+def test_one_program_per_bucket(shape):
+    points, q = shape
+    rng = np.random.default_rng(30)
+    a, _ = in_random_frame(points, 0, rng)
+    b, _ = in_random_frame(points * [1.3, 0.8, 1.0], 4, rng)
+    run(a[: TEST_SPEC.model_points], q[:700])           # compiles (or reuses) the 1024 bucket
+    before = TRACES["register"]
+    run(b[: TEST_SPEC.model_points], q[:900])           # another candidate, another Q, same bucket
+    run(a[: TEST_SPEC.model_points], q[:600])
+    assert TRACES["register"] == before
+    run(b[: TEST_SPEC.model_points], q[:900], bucket=2048)  # a new bucket is a new program
+    assert TRACES["register"] == before + 1
