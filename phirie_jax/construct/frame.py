@@ -6,9 +6,11 @@ Registration and the built-in generators work in a gravity frame: world rotated 
 normal of the surface the instances stand on.
 
 Support of an instance: rays cast straight down onto the scene surface around its
-footprint (a ring 1.5–6 cm outside Q's robust box) hit what it stands on; the support
-height is the median height of the hits near Q's lowest points. Without a surface
-(or hits), the support is Q's 2nd-percentile height and says so.
+footprint (a ring 1.5–6 cm outside Q's robust box) hit what it stands on. Of the hits
+no higher than 1 cm above Q's 2nd-percentile height and at most ``MAX_HIDDEN_BASE``
+below it (the lower part of a round object is often never seen), the densest 5 mm
+height bin wins and the support is the median of the hits within 1 cm of it. Without a
+surface (or hits), the support is Q's 2nd-percentile height and says so.
 """
 
 from __future__ import annotations
@@ -19,7 +21,10 @@ import numpy as np
 
 RING_INNER, RING_OUTER = 0.015, 0.06   # ring around the footprint, metres
 RING_RAYS = 24                         # rays per side of the ring's sampling grid
-SUPPORT_BAND = 0.03                    # hits within this of Q's base height count
+ABOVE_BASE = 0.01                      # hits up to this above Q's base height count
+MAX_HIDDEN_BASE = 0.15                 # ... and down to this below it
+HEIGHT_BIN = 0.005                     # the support is the densest bin of hit heights
+SUPPORT_BAND = 0.01                    # hits within this of that bin are the support's
 MIN_PLANE_HITS = 20                    # to refine up from the support's normal
 MAX_UP_CHANGE_DEG = 15.0               # refinement never moves up more than this
 
@@ -86,7 +91,13 @@ def find_support(q_gravity: np.ndarray, frame: GravityFrame, raycaster=None) -> 
         down = np.tile(frame.to_world(np.array([[0.0, 0.0, -1.0]])), (len(origins), 1))
         hits = raycaster.cast(frame.to_world(origins), down)
         points = frame.to_gravity(hits.points[hits.hit])
-        near = points[np.abs(points[:, 2] - base) <= SUPPORT_BAND] if len(points) else points
+        below = points[(points[:, 2] <= base + ABOVE_BASE) & (points[:, 2] >= base - MAX_HIDDEN_BASE)]
+        near = below[:0]
+        if len(below):
+            edges = np.arange(below[:, 2].min(), below[:, 2].max() + 2 * HEIGHT_BIN, HEIGHT_BIN)
+            counts, edges = np.histogram(below[:, 2], bins=edges)
+            mode = edges[np.argmax(counts)] + 0.5 * HEIGHT_BIN
+            near = below[np.abs(below[:, 2] - mode) <= SUPPORT_BAND]
         if len(near):
             normal = np.array([0.0, 0.0, 1.0])
             if len(near) >= MIN_PLANE_HITS:
