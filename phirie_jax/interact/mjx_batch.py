@@ -32,8 +32,13 @@ BATCHED = ("body_ipos", "body_iquat", "body_mass", "body_subtreemass", "body_ine
            "dof_invweight0", "dof_M0", "geom_pos", "geom_quat", "geom_size", "geom_rbound", "geom_aabb",
            "geom_friction", "geom_solref", "geom_solimp")
 # Fields allowed to differ and not used by a plane-only MJX step: mesh storage (MJX collides the
-# stacked hull vertices instead), "same frame" shortcuts MJX does not read, private sizes.
+# stacked hull vertices instead), the C library's "same frame" / "simple body" shortcuts that MJX
+# does not read (checked in its source), private sizes.
 UNUSED = ("body_sameframe", "geom_sameframe")
+# The sparse mass-matrix pattern: diagonal for a "simple" body (inertial frame = body frame), dense
+# 6×6 otherwise. The template is never simple, and the dense pattern holds the diagonal one, so a
+# simple candidate is simulated exactly (its off-diagonal entries come out zero).
+SPARSITY = ("body_simple", "dof_simplenum", "M_rownnz", "M_rowadr", "M_colind")
 TRACES = {"count": 0}   # incremented when the kernel is traced (a compile); for the tests
 
 
@@ -54,7 +59,7 @@ def hull_vertices(model: mujoco.MjModel, mesh_id: int) -> np.ndarray:
 def _check_compatible(template: mujoco.MjModel, model: mujoco.MjModel) -> None:
     """Every field not stacked must equal the template's, or the batch would simulate wrong models."""
     for name in (f.name for f in mjx.Model.fields() if f.name not in ("_impl", "opt", "stat")):
-        if (name in BATCHED or name in UNUSED or name.startswith(("mesh_", "_"))
+        if (name in BATCHED or name in UNUSED or name in SPARSITY or name.startswith(("mesh_", "_"))
                 or not hasattr(model, name)):
             continue
         a, b = getattr(template, name), getattr(model, name)
@@ -68,6 +73,8 @@ def _check_compatible(template: mujoco.MjModel, model: mujoco.MjModel) -> None:
 
 def stack_params(template: mujoco.MjModel, models: list[mujoco.MjModel], budget: int) -> dict[str, np.ndarray]:
     """Per-candidate model data, stacked: BATCHED fields, hull vertices (N, P, budget, 3), meaninertia (N,)."""
+    if template.body_simple[1]:
+        raise ValueError("the bucket template's body must not be simple (its mass-matrix pattern must be dense)")
     params = {name: np.stack([getattr(m, name) for m in models]) for name in BATCHED}
     verts = np.empty((len(models), template.nmesh, budget, 3))
     for i, m in enumerate(models):
