@@ -11,9 +11,10 @@ Search (the paper's "Object candidates and registered assets"):
    multipliers; translation puts the candidate's horizontal box centre on Q's and its
    lowest point on the support (or on Q's 2nd-percentile height). Each is scored by
    E(S) = d_τ(SP, Q) + d_τ(Q, SP) on subsets of P and Q; all of them in one call.
-3. The ``top_k`` best hypotheses of every axis are refined: partial-to-complete
-   point-to-point ICP (each q ∈ Q matched to its nearest point of SP within
-   ``max_corr``; Kabsch), then scale and translation refinement with R fixed.
+3. The ``top_k`` best hypotheses of the candidate's own up (+z, when searched) and of the
+   ``refine_other_axes`` other axes whose best sweep score is lowest are refined:
+   partial-to-complete point-to-point ICP (each q ∈ Q matched to its nearest point of SP
+   within ``max_corr``; Kabsch), then scale and translation refinement with R fixed.
 4. Every refined hypothesis is scored again on all of P (and up to ``score_obs_points`` of
    Q): E, its two terms, and the observation support (fraction of Q within τ of SP).
 
@@ -52,7 +53,9 @@ class SearchSpec:
         axes: indices into ``UP_AXES`` searched in this call (all six: retry costs no call).
         num_yaws: yaws per axis, evenly spaced (36 = the paper's 10°).
         scale_multipliers: multipliers of the per-axis scale init.
-        top_k: hypotheses refined per axis.
+        top_k: hypotheses refined per refined axis.
+        refine_other_axes: besides the own up (+z, always refined when it is in ``axes``), this many
+            other axes are refined — those with the lowest sweep score. All six: set it to 5.
         model_points: rows of P (the paper's 20K).
         sweep_model_points / sweep_obs_points: leading rows of P / Q scoring the sweep.
         icp_model_points / icp_obs_points: leading rows of P / Q matched by the refinements.
@@ -70,12 +73,13 @@ class SearchSpec:
     num_yaws: int = 36
     scale_multipliers: tuple[float, ...] = (0.85, 1.0, 1.15)
     top_k: int = 1
+    refine_other_axes: int = 2
     model_points: int = 20_000
     sweep_model_points: int = 512
     sweep_obs_points: int = 512
     icp_model_points: int = 2048
     icp_obs_points: int = 2048
-    score_obs_points: int = 8192
+    score_obs_points: int = 4096
     icp_iterations: int = 20
     scale_iterations: int = 10
     rotation: str = "full"
@@ -91,10 +95,19 @@ class SearchSpec:
     def num_hypotheses(self) -> int:
         return len(self.axes) * self.hypotheses_per_axis
 
+    @property
+    def own_searched(self) -> bool:
+        return 0 in self.axes
+
+    @property
+    def refined_axes(self) -> int:
+        return min(len(self.axes), int(self.own_searched) + self.refine_other_axes)
+
 
 @pytree_dataclass
 class Registration:
-    """Refined hypotheses of one candidate: R = len(axes) · top_k rows, axis-major."""
+    """Refined hypotheses of one candidate: R = refined_axes · top_k rows, axis-major, the own
+    up (+z) first when it was searched."""
 
     rotation: jax.Array      # (R, 3, 3)
     translation: jax.Array   # (R, 3)
@@ -284,8 +297,16 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
 
     energy = jax.lax.map(sweep_one, (rots, scales), batch_size=spec.hypothesis_batch)
     per_axis = energy.reshape(len(spec.axes), spec.hypotheses_per_axis)
-    _, best = jax.lax.top_k(-per_axis, spec.top_k)                                  # (A, k)
-    pick = (best + jnp.arange(len(spec.axes))[:, None] * spec.hypotheses_per_axis).reshape(-1)
+    axis_best = jnp.min(per_axis, axis=1)
+    if spec.own_searched:
+        own = spec.axes.index(0)
+        others = jnp.where(jnp.arange(len(spec.axes)) == own, jnp.inf, axis_best)
+        _, more = jax.lax.top_k(-others, spec.refined_axes - 1)
+        chosen = jnp.concatenate([jnp.array([own]), more])
+    else:
+        _, chosen = jax.lax.top_k(-axis_best, spec.refined_axes)
+    _, best = jax.lax.top_k(-per_axis[chosen], spec.top_k)                          # (refined axes, k)
+    pick = (best + chosen[:, None] * spec.hypotheses_per_axis).reshape(-1)
 
     def refine_one(h):
         rot, s = h

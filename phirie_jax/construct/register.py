@@ -104,7 +104,7 @@ class Hypothesis:
 
 def search_spec(config: RegistrationConfig, axes: tuple[int, ...], snap: bool) -> SearchSpec:
     return SearchSpec(axes=axes, num_yaws=config.num_yaws, scale_multipliers=tuple(config.scale_multipliers),
-                      top_k=config.top_k, model_points=config.points,
+                      top_k=config.top_k, refine_other_axes=config.refine_other_axes, model_points=config.points,
                       sweep_model_points=config.sweep_model_points, sweep_obs_points=config.sweep_obs_points,
                       icp_model_points=config.icp_model_points, icp_obs_points=config.icp_obs_points,
                       score_obs_points=config.score_obs_points,
