@@ -82,10 +82,73 @@ def _simplify(mesh, max_triangles: int):
     return _trimesh(np.asarray(o3.vertices), np.asarray(o3.triangles))
 
 
+def orient_faces(faces: np.ndarray) -> np.ndarray:
+    """Flip triangles so that every edge shared by two of them is traversed in opposite directions
+    (breadth-first over edge neighbours, per connected piece; manifold input)."""
+    faces = np.asarray(faces, np.int64).copy()
+    edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
+    _, edge_id = np.unique(edges, axis=0, return_inverse=True)
+    edge_id = edge_id.reshape(-1)
+    order = np.argsort(edge_id, kind="stable")
+    pairs = order.reshape(-1) // 3
+    owners: dict[int, list[int]] = {}
+    for e, f in zip(edge_id[order], pairs):
+        owners.setdefault(int(e), []).append(int(f))
+    neighbours: list[list[int]] = [[] for _ in range(len(faces))]
+    for fs in owners.values():
+        if len(fs) == 2:
+            neighbours[fs[0]].append(fs[1])
+            neighbours[fs[1]].append(fs[0])
+    directed = lambda f: {(faces[f, i], faces[f, (i + 1) % 3]) for i in range(3)}  # noqa: E731
+    seen = np.zeros(len(faces), bool)
+    for root in range(len(faces)):
+        if seen[root]:
+            continue
+        seen[root] = True
+        queue = [root]
+        while queue:
+            f = queue.pop()
+            mine = directed(f)
+            for g in neighbours[f]:
+                if seen[g]:
+                    continue
+                if mine & directed(g):          # same direction on the shared edge: flip g
+                    faces[g] = faces[g, ::-1]
+                seen[g] = True
+                queue.append(g)
+    return faces
+
+
+def fill_holes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Close each simple boundary loop of a consistently oriented mesh with a fan around its centroid."""
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    present = {tuple(e) for e in directed.tolist()}
+    boundary = [(a, b) for a, b in directed.tolist() if (b, a) not in present]
+    nxt: dict[int, int] = {}
+    for a, b in boundary:
+        if a in nxt:                             # a vertex on two holes: leave it open
+            return vertices, faces
+        nxt[a] = b
+    new_v, new_f = [vertices], [faces]
+    count = len(vertices)
+    while nxt:
+        start, loop = next(iter(nxt)), []
+        v = start
+        while v in nxt:
+            loop.append(v)
+            v = nxt.pop(v)
+        if v != start or len(loop) < 3:
+            continue
+        centre = vertices[loop].mean(0)
+        new_v.append(centre[None])
+        # boundary edges run a→b on the existing side, so the patch runs b→a
+        new_f.append(np.array([[loop[(i + 1) % len(loop)], loop[i], count] for i in range(len(loop))]))
+        count += 1
+    return np.concatenate(new_v), np.concatenate(new_f)
+
+
 def repair_mesh(vertices: np.ndarray, faces: np.ndarray, config: PhysicsConfig = PhysicsConfig()) -> RepairedMesh:
     """A clean, consistently wound mesh of at most ``config.max_triangles`` triangles (or ``MeshError``)."""
-    import trimesh
-
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(vertices) == 0 or len(faces) == 0:
@@ -109,13 +172,13 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, config: PhysicsConfig =
     hull = _hull_volume(mesh.vertices)
     if hull < config.min_volume:
         raise MeshError(f"zero volume: the convex hull encloses {hull:.3g} m³ (< min_volume {config.min_volume:g})")
-    trimesh.repair.fix_winding(mesh)
+    mesh = _trimesh(mesh.vertices, orient_faces(mesh.faces))
     if not mesh.is_watertight:
-        trimesh.repair.fill_holes(mesh)
-        report["holes_filled"] = True
+        mesh = _trimesh(*fill_holes(mesh.vertices, mesh.faces))
+        report["holes_filled"] = bool(mesh.is_watertight)
     watertight = bool(mesh.is_watertight)
-    if watertight:
-        trimesh.repair.fix_inversion(mesh)
+    if watertight and mesh.volume < 0:            # consistently wound, but inside out
+        mesh = _trimesh(mesh.vertices, mesh.faces[:, ::-1])
     if len(mesh.faces) > config.max_triangles:
         mesh = _simplify(mesh, config.max_triangles)
         report["simplified_to"] = len(mesh.faces)

@@ -8,6 +8,10 @@ the mesh ``scale`` attribute in MJCF and URDF. Both files carry the same explici
 ``scene.xml``: gravity along −up of the scene, the background support geoms, and one free
 body per object named ``object_<id>``, placed at S_i(0) (the pose's rotation and translation).
 Every path inside is relative to the output folder, where ``scene.xml`` lives.
+
+PyBullet replaces a URDF's inertia by its collision shapes' bounding boxes unless loaded with
+``flags=pybullet.URDF_USE_INERTIA_FROM_FILE``; with it, mass, centre of mass and principal
+moments are the ones written here (tested).
 """
 
 from __future__ import annotations
