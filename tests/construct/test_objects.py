@@ -24,6 +24,7 @@ FAST = ObjectsConfig(hull_resolution=32, registration=RegistrationConfig(
     score_obs_points=1024, hypothesis_batch=108))
 F1_MIN = 0.9
 TAU_F1 = 0.02
+MIN_PSNR_DB = 20.0  # asset vs captured Gaussians, on the object's pixels
 
 
 @pytest.fixture(scope="module")
@@ -147,3 +148,27 @@ def test_bad_instances_are_recorded_and_the_scene_goes_on(observed, tmp_path):
     assert all(o["status"] == "failed" and "too few observed points" in o["reason"] for o in result["objects"][1:])
     with pytest.raises(SceneInputError, match="instances"):
         run_objects(root, tmp_path / "empty", FAST)
+
+
+@pytest.mark.slow
+def test_assets_keep_the_captured_appearance(observed, constructed):
+    """Each asset's visual Gaussians, placed by its pose, render like the object's captured
+    Gaussians did (PSNR on the object's pixels)."""
+    import jax.numpy as jnp
+
+    from phirie_jax.construct.assets import transform_splats
+    from phirie_jax.io.scene import load_scene
+    from phirie_jax.render import render
+
+    root, _, scene, _ = observed
+    work, manifest = constructed
+    cameras = load_scene(root, check_images=False).cameras
+    for obj in manifest["objects"]:
+        captured = scene.capture.data.subset(scene.capture.labels == obj["id"])
+        placed = transform_splats(read_gaussian_ply(work / obj["visual"]), np.asarray(obj["pose"]))
+        for cam in cameras[::3]:
+            a = render(captured.to_kernel(), cam, background=jnp.zeros(3))
+            b = render(placed.to_kernel(), cam, background=jnp.zeros(3))
+            seen = np.asarray(a.alpha) > 0.5
+            mse = float(np.mean((np.asarray(a.rgb)[seen] - np.asarray(b.rgb)[seen]) ** 2))
+            assert 10 * np.log10(1 / max(mse, 1e-12)) > MIN_PSNR_DB, (obj["id"], obj["candidate"], cam.name)
