@@ -10,6 +10,11 @@ base at z = 0, in an orientation whose verdict statics give ("expected"):
 - unstable: a cone on its tip tilted 2–10°, a box balanced on one edge tilted 3–10° past
   balance, a thin plate standing on its edge tilted past its support, a tall cylinder on
   its rim tilted 25–40°; all sized so that toppling moves the centre of mass well over 3 cm.
+
+The hard set (``hard_set``) is near the edges of the protocol instead: a box or a cone only
+0.3–1.5° past balance (unstable, but it starts to fall only after the settling phase), and
+small boxes toppling off an edge, whose drift lands around the 3 cm threshold (no expected
+verdict: statics do not decide it, only the simulation does).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 KINDS_STABLE = ("box_face", "cone_base", "cylinder_upright", "cylinder_side", "plate_flat", "plate_edge_inside")
 KINDS_UNSTABLE = ("cone_tip", "box_edge", "plate_edge", "cylinder_rim")
+KINDS_HARD = ("box_edge_near", "cone_tip_near", "small_box_edge")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,7 +35,7 @@ class Case:
     kind: str
     vertices: np.ndarray    # (V, 3) convex shape, canonical frame
     pose: np.ndarray        # (4, 4) rigid, canonical → scene (z up)
-    expected_stable: bool
+    expected_stable: bool | None     # None: statics do not decide it (near the drift threshold)
 
 
 def box(extents) -> np.ndarray:
@@ -89,13 +95,25 @@ def make_case(kind: str, rng: np.random.Generator, index: int = 0) -> Case:
         verts = box([rng.uniform(0.05, 0.2), b, c])
         balance = np.arctan2(b, c)                              # the diagonal (b/2, c/2) vertical
         rot = Rotation.from_euler("x", balance + deg(3, 10))
+    elif kind == "box_edge_near":
+        b, c = rng.uniform(0.1, 0.2, 2)
+        verts = box([rng.uniform(0.05, 0.2), b, c])
+        rot = Rotation.from_euler("x", np.arctan2(b, c) + deg(0.3, 1.5))
+    elif kind == "cone_tip_near":
+        verts = cone(rng.uniform(0.03, 0.06), rng.uniform(0.12, 0.2))
+        rot = Rotation.from_euler("x", 180 + np.degrees(deg(0.3, 1.5)), degrees=True)
+    elif kind == "small_box_edge":
+        b, c = rng.uniform(0.03, 0.07, 2)
+        verts = box([rng.uniform(0.03, 0.1), b, c])
+        rot = Rotation.from_euler("x", np.arctan2(b, c) + deg(3, 10))
     elif kind == "cylinder_rim":
         r, h = rng.uniform(0.02, 0.04), rng.uniform(0.15, 0.25)
         verts = prism(r, h)
         rot = Rotation.from_euler("x", deg(25, 40))
     else:
-        raise ValueError(f"unknown case kind {kind!r} (expected one of {KINDS_STABLE + KINDS_UNSTABLE})")
-    return Case(f"{kind}_{index}", kind, verts, _pose(rot, rng), kind in KINDS_STABLE)
+        raise ValueError(f"unknown case kind {kind!r} (expected one of {KINDS_STABLE + KINDS_UNSTABLE + KINDS_HARD})")
+    expected = None if kind == "small_box_edge" else kind in KINDS_STABLE
+    return Case(f"{kind}_{index}", kind, verts, _pose(rot, rng), expected)
 
 
 def case_set(count: int, seed: int = 0, unstable_fraction: float = 0.5) -> list[Case]:
@@ -105,3 +123,9 @@ def case_set(count: int, seed: int = 0, unstable_fraction: float = 0.5) -> list[
     kinds = [KINDS_UNSTABLE[i % len(KINDS_UNSTABLE)] for i in range(n_bad)]
     kinds += [KINDS_STABLE[i % len(KINDS_STABLE)] for i in range(count - n_bad)]
     return [make_case(kind, rng, i) for i, kind in enumerate(kinds)]
+
+
+def hard_set(count: int, seed: int = 0) -> list[Case]:
+    """``count`` cases near the protocol's edges, cycling through ``KINDS_HARD``."""
+    rng = np.random.default_rng(seed)
+    return [make_case(KINDS_HARD[i % len(KINDS_HARD)], rng, i) for i in range(count)]

@@ -122,13 +122,14 @@ def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manif
         try:
             body, _ = _drop_body(entry, out_dir, up)
         except (OSError, ValueError, KeyError, TypeError) as err:
-            entry["drop_test"] = dt.DropResult(None, None, None, None, None, config.drop_test.backend,
+            entry["drop_test"] = dt.DropResult(None, None, None, None, None,
+                                               dt.resolve_backend(config.drop_test.backend),
                                                f"exported files unreadable: {err}").record()
             continue
         entries.append(entry)
         bodies.append(body)
     results = dt.drop_test(bodies, config.drop_test)
-    method = f"drop test of the exported collision parts ({config.drop_test.backend})"
+    method = f"drop test of the exported collision parts ({dt.resolve_backend(config.drop_test.backend)})"
     for entry, result in zip(entries, results):
         entry["drop_test"] = result.record()
         entry.setdefault("checks", {})["settling"] = dt.settling_check(result, config.drop_test, method)
