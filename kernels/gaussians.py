@@ -184,18 +184,35 @@ class Sim3:
 
 
 def transform_gaussians(gaussians: Gaussians, transform: Sim3) -> Gaussians:
-    """The Gaussian set moved by one similarity: μ' = sRμ + t, Σ' = s² R Σ Rᵀ.
+    """The Gaussian set moved by a similarity: μ' = sRμ + t, Σ' = s² R Σ Rᵀ.
 
+    ``transform`` is one Sim3 for the whole set, or one per Gaussian (leaves with a
+    leading (N,) axis, e.g. gathered from per-body transforms by a body index).
     Σ' is expressed exactly in the stored parameters (q' = q_R ⊗ q, log s' = log s + log s_T),
-    and the SH coefficients of degree 1–3 are rotated so view-dependent colour
-    turns with the object.
+    and the SH coefficients of degree 1–3 are rotated so view-dependent colour turns
+    with the object.
     """
     rot_quat = quat_normalize(transform.quat)
     rot = quat_to_rotmat(rot_quat)
+    scale = jnp.asarray(transform.scale)
     return Gaussians(
-        means=transform.scale * gaussians.means @ rot.T + transform.translation,
+        means=scale[..., None] * jnp.einsum("...ij,...j->...i", rot, gaussians.means)
+        + transform.translation,
         quats=quat_multiply(rot_quat, gaussians.quats),
-        log_scales=gaussians.log_scales + jnp.log(transform.scale),
+        log_scales=gaussians.log_scales + jnp.log(scale)[..., None],
         opacity_logits=gaussians.opacity_logits,
         sh=rotate_sh(gaussians.sh, rot),
     )
+
+
+def transform_bodies(gaussians: Gaussians, transforms: Sim3, body) -> Gaussians:
+    """Each Gaussian moved by the transform of its body.
+
+    transforms: Sim3 with (K,) leaves (one per body); body: (N,) int body index per Gaussian.
+    """
+    return transform_gaussians(gaussians, jax.tree.map(lambda leaf: leaf[body], transforms))
+
+
+def concatenate(parts: list[Gaussians]) -> Gaussians:
+    """One set holding every Gaussian of ``parts`` (same SH degree), in order."""
+    return jax.tree.map(lambda *leaves: jnp.concatenate(leaves, axis=0), *parts)

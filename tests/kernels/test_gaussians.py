@@ -15,6 +15,8 @@ from kernels.gaussians import (
     quat_multiply,
     quat_to_rotmat,
     rotmat_to_quat,
+    concatenate,
+    transform_bodies,
     transform_gaussians,
 )
 from kernels.sh import eval_sh
@@ -189,3 +191,18 @@ def test_pytree_is_frozen_and_replaceable():
     h = g.replace(opacity_logits=g.opacity_logits + 1)
     assert h.num == 2 and h.sh_degree == 3
     assert len(jax.tree.leaves(h)) == 5
+
+
+def test_per_body_transforms_match_one_transform_per_set(x64):
+    g = random_gaussians(25, n=12)
+    a, b = random_sim3(26), random_sim3(27)
+    transforms = jax.tree.map(lambda x, y: jnp.stack([x, y]), a, b)
+    body = jnp.array([0, 1] * 6)
+    moved = transform_bodies(g, transforms, body)
+    for k, t in enumerate((a, b)):
+        sub = jax.tree.map(lambda x: x[k::2], g)
+        ref = transform_gaussians(sub, t)
+        for x, y in zip(jax.tree.leaves(jax.tree.map(lambda x: x[k::2], moved)), jax.tree.leaves(ref)):
+            np.testing.assert_allclose(x, y, atol=EXACT_F64)
+    both = concatenate([g, g])
+    assert both.num == 24 and both.sh.shape == (24, 16, 3)
