@@ -18,6 +18,8 @@ For each candidate count (default 1, 64, 256, 1024):
 - ``pybullet``: what the paper used, one after another: reset, plane + convex-hull body
   with the same mass, centre of mass, friction and restitution 0, the same protocol;
 - ``ratios``: MJX against both loops, run time alone and compile + run;
+- ``compile_vs_count``: the batch program compiled ``--compile-repeats`` more times per count,
+  interleaved across counts (a busy shared host slows some compiles: min and median);
 - ``agreement``: verdicts of MJX and PyBullet against MuJoCo C on the largest set, per kind;
 - ``agreement_hard``: the same on ``--hard`` cases near the protocol's edges (a box or cone
   0.3–1.5° past balance; small boxes toppling off an edge, drifting around the 3 cm threshold);
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import platform
 import statistics
 import sys
@@ -188,6 +191,36 @@ def solver_check(bodies: list[DropBody], chosen: list[cases.Case], config: DropT
             "median_abs_drift_difference_m": float(np.median(drift))}
 
 
+def compile_vs_count(counts: list[int], config: DropTestConfig, repeats: int, seed: int) -> dict:
+    """Fresh compiles of the bucket-1 program for each count, interleaved: {count: seconds}."""
+    template_model, template = bucket_template(1, config)
+    inputs = {}
+    for count in counts:
+        _, bodies = bodies_for(count, seed)
+        models = [build_model(b, 1, config) for b in bodies]
+        qpos0 = np.stack([spawn_qpos(b) for b in bodies])
+        params = mjx_batch.stack_params(template_model, models, config.vertex_budget)
+        batch = mjx_batch.padded_count(count, config)
+        idx = np.where(np.arange(batch) < count, np.arange(batch), 0)
+        inputs[count] = ({k: v[idx] for k, v in params.items()}, qpos0[idx])
+    times: dict[int, list[float]] = {c: [] for c in counts}
+    for _ in range(repeats):
+        for count in counts:
+            jax.clear_caches()          # else the in-memory executable cache answers in a millisecond
+            lowered = mjx_batch.lower(template, *inputs[count], config)   # a Lowered keeps its executable
+            t0 = time.perf_counter()
+            lowered.compile()
+            times[count].append(time.perf_counter() - t0)
+    return {str(c): {"batch": mjx_batch.padded_count(c, config), "compile_s": t, "min_s": min(t),
+                     "median_s": statistics.median(t)} for c, t in times.items()}
+
+
+def _save(result: dict, out: Path | None) -> None:
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 64, 256, 1024])
@@ -196,6 +229,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="timed MJX runs after the warm-up call")
     parser.add_argument("--pybullet-max", type=int, default=None, help="cap PyBullet at this many candidates")
     parser.add_argument("--skip", nargs="*", default=(), choices=("c", "pybullet", "solver"))
+    parser.add_argument("--compile-repeats", type=int, default=2, help="extra interleaved compiles per count")
     parser.add_argument("--hard", type=int, default=256, help="cases of the hard agreement set (0: none)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
@@ -215,6 +249,7 @@ def main() -> None:
                      "free_steps": config.free_steps, "vertex_budget": config.vertex_budget,
                      "solver_iterations": config.solver_iterations,
                      "line_search_iterations": config.line_search_iterations, "tolerance": config.tolerance},
+        "load_average_at_start": os.getloadavg(),
         "mjx": [], "mujoco_c": [], "pybullet_rows": [], "ratios": []}
     largest = max(args.counts)
     verdicts: dict = {}
@@ -251,6 +286,10 @@ def main() -> None:
             ratio["pybullet_over_mjx_run"] = pb_row["run_s"] / m["run_s"]
             ratio["pybullet_over_mjx_compile_plus_run"] = pb_row["run_s"] / (m["compile_s"] + m["run_s"])
         result["ratios"].append(ratio)
+        _save(result, args.out)
+    if args.compile_repeats:
+        result["compile_vs_count"] = compile_vs_count(sorted(args.counts), config, args.compile_repeats, args.seed)
+        _save(result, args.out)
     chosen, bodies = bodies_for(largest, args.seed)
     v = verdicts[largest]
     result["agreement"] = {}
@@ -274,6 +313,7 @@ def main() -> None:
             _, pbr = bench_pybullet(pb, hard_bodies, config)
             block["pybullet_vs_mujoco_c"] = agreement(hard, ref, pbr)
         result["agreement_hard"] = block
+        _save(result, args.out)
     if "solver" not in args.skip:
         result["solver"] = solver_check(bodies, chosen, config)
     at_1024 = next((r for r in result["ratios"] if r["candidates"] == 1024), None)
@@ -283,11 +323,9 @@ def main() -> None:
         "met": (None if device.platform == "cpu" or not at_1024 or "pybullet_over_mjx_run" not in at_1024
                 else at_1024["pybullet_over_mjx_run"] >= TARGET_GPU_RATIO),
         "note": "measured on a CPU: the target is for a GPU" if device.platform == "cpu" else ""}
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    result["load_average_at_end"] = os.getloadavg()
+    print(json.dumps(result, indent=2))
+    _save(result, args.out)
 
 
 if __name__ == "__main__":

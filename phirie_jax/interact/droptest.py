@@ -106,9 +106,10 @@ def build_model(body: DropBody, bucket: int, config: DropTestConfig) -> mujoco.M
     opt.iterations = config.solver_iterations
     opt.ls_iterations = config.line_search_iterations
     opt.tolerance = config.tolerance
-    # the plane carries no friction: MuJoCo takes the larger of a pair, so the body's prior applies
+    # the body's priors govern its contact with the plane: MuJoCo takes the larger friction of a
+    # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
     spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
-                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0])
+                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
     b = spec.worldbody.add_body(name="body")
     b.add_freejoint()
     m = body.mass

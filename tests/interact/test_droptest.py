@@ -109,3 +109,16 @@ def test_settling_check_rows():
     assert row["method"] == "convex hull" and row["status"] == "run"
     row = settling_check(bad)
     assert row["passed"] is False and row["status"] == "failed" and row["reason"] == bad.error
+
+
+def test_auto_backend_is_the_c_library_without_an_accelerator():
+    import jax
+
+    from phirie_jax.interact.droptest import resolve_backend
+
+    assert resolve_backend("auto") == ("mujoco" if jax.default_backend() == "cpu" else "mjx")
+    assert resolve_backend("mjx") == "mjx" and resolve_backend("mujoco") == "mujoco"
+    with pytest.raises(ValueError, match="backend"):
+        DropTestConfig(backend="bullet")
+    with pytest.raises(ValueError, match="max_hull_vertices"):
+        PhysicsConfig(max_hull_vertices=128)
