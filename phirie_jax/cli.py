@@ -14,7 +14,8 @@ from typing import Annotated, Literal
 
 import tyro
 
-from phirie_jax.config import ObserveConfig
+from phirie_jax.config import ObserveConfig, PhysicsConfig
+from phirie_jax.convert import ConvertConfig
 from phirie_jax.errors import SceneInputError
 
 Scene = Annotated[Path, tyro.conf.Positional]
@@ -148,9 +149,10 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
-            surface: Path | None = None, observe: ObserveConfig = ObserveConfig()) -> None:
-    """Scene → interactive scene. Runs the stages in order, each adding to OUT/manifest.json:
-    observe (instances).
+            surface: Path | None = None, config: ConvertConfig = ConvertConfig()) -> None:
+    """Scene → interactive scene: observe → objects → physics, each adding to OUT/manifest.json
+    (instances; objects with meshes, visual Gaussians, checks; collision, scene.xml, URDFs,
+    drop tests).
 
     Args:
         scene: a scene folder.
@@ -158,13 +160,50 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         masks: mask source for observation: "files", "auto" or an external segmenter's folder.
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: scene surface mesh to use instead of the one found.
-        observe: observation parameters.
+        config: every stage's parameters (defaults: the paper's numbers).
     """
-    from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe import run_observe
+    from rich.console import Console
 
-    loaded = load_scene(scene, gaussians=gaussians, surface=surface)
-    _print_instances(run_observe(scene, out, observe, masks=masks, scene=loaded))
+    from phirie_jax.convert import run_convert
+
+    console = Console()
+    with console.status("converting") as status:
+        manifest = run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface,
+                               progress=lambda stage: status.update(f"converting: {stage}"))
+    _print_instances(manifest)
+    _print_objects(manifest)
+
+
+def _print_objects(manifest: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="objects")
+    for column in ("id", "status", "candidate", "failed checks", "drop test", "reason"):
+        table.add_column(column)
+    for obj in manifest.get("objects", []):
+        failed = [name for name, row in (obj.get("checks") or {}).items() if row.get("passed") is False]
+        drop = obj.get("drop_test") or {}
+        verdict = "—" if not drop else ("stable" if drop.get("stable") else "unstable") + \
+            f" ({100 * drop.get('drift_m', float('nan')):.1f} cm)"
+        candidate = obj.get("candidate")
+        table.add_row(str(obj["id"]), obj.get("status", "?"),
+                      str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—"),
+                      ", ".join(failed) or "—", verdict,
+                      "" if obj.get("status") == "accepted" else str(obj.get("reason") or ""))
+    Console().print(table)
+
+
+def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig = PhysicsConfig()) -> None:
+    """Re-run the drop tests (the paper's protocol) on an exported folder and update its manifest.
+
+    Args:
+        out: a `phirie convert` output folder.
+        config: physics and drop-test parameters.
+    """
+    from phirie_jax.interact.stage import run_droptest
+
+    _print_objects(run_droptest(out, config))
 
 
 def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large"] = "default",
@@ -182,7 +221,7 @@ def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large
 
 
 COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
-            "convert": convert, "demo": demo}
+            "convert": convert, "droptest": droptest, "demo": demo}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,309 @@
+"""The Interactive Environment: the simulator moves the bodies, the same Gaussians follow.
+
+``Environment.load(OUT_DIR)`` reads a converted scene: the MuJoCo model (``scene.xml``),
+the background Gaussians (``background.ply``), each accepted object's visual Gaussians
+(``objects/<id>/visual.ply``, canonical frame) and S_i(0) (the manifest's ``pose``), and
+the capture's cameras (``cameras.json``/``transforms.json`` written beside them).
+
+At time t the object's Gaussians are placed by S_i(t) = T_i(t) T_i(0)⁻¹ S_i(0), with T_i
+the simulated pose of its body; means, covariances and SH coefficients are transformed
+(``kernels.gaussians.transform_bodies``) and everything — background and every object —
+is rasterized together, in one depth order (no image pasting).
+
+Interactions: ``shoot`` (an impulse along the ray through a camera pixel, ray-cast
+against the collision geometry), ``push`` (a kinematic pusher body driven along a
+line), ``place`` (drop or throw: set a body's pose and velocity).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kernels.gaussians import Gaussians, Sim3, concatenate, transform_bodies
+from phirie_jax.errors import SceneInputError
+from phirie_jax.io.camera import Camera
+from phirie_jax.io.ply import GaussianSplatData, read_gaussian_ply
+from phirie_jax.io.transforms_json import read_transforms_json
+
+SCENE_FILE = "scene.xml"
+BACKGROUND_FILE = "background.ply"
+CAMERAS_FILE = "transforms.json"
+PUSHER = "pusher"
+PUSHER_HALF_SIZE = (0.02, 0.05, 0.03)  # a paddle: thin along the push direction
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneObject:
+    """One simulated object: its body and where its canonical frame was at t = 0."""
+
+    id: int
+    body: str                 # MuJoCo body name
+    body_id: int
+    pose0: np.ndarray         # (4, 4) S_i(0): canonical → scene
+    gaussians: slice          # this object's rows in the environment's object Gaussians
+
+
+def body_matrix(xpos: np.ndarray, xquat: np.ndarray) -> np.ndarray:
+    """(…, 4, 4) rigid transforms from MuJoCo positions (…, 3) and wxyz quaternions (…, 4)."""
+    w, x, y, z = np.moveaxis(np.asarray(xquat, np.float64), -1, 0)
+    rot = np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+    out = np.zeros(rot.shape[:-2] + (4, 4))
+    out[..., :3, :3], out[..., :3, 3], out[..., 3, 3] = rot, xpos, 1.0
+    return out
+
+
+@jax.jit
+def compose_scene(background: Gaussians, objects: Gaussians, body, placements) -> Gaussians:
+    """Background plus every object Gaussian moved by its body's placement (K, 4, 4)."""
+    moved = transform_bodies(objects, Sim3.from_matrix(placements), body)
+    return concatenate([background, moved])
+
+
+def _load_model(out_dir: Path, with_pusher: bool):
+    import mujoco
+
+    path = out_dir / SCENE_FILE
+    if not path.is_file():
+        raise SceneInputError(path, None, "missing (expected the physics stage's MJCF scene; "
+                                          "run `phirie convert` first)")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        if with_pusher:
+            body = spec.worldbody.add_body(name=PUSHER, mocap=True, pos=[0.0, 0.0, -10.0])
+            body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=list(PUSHER_HALF_SIZE), rgba=[0.2, 0.2, 0.2, 1])
+        return spec.compile()
+    except Exception as err:  # noqa: BLE001 — MuJoCo's own message names the problem
+        raise SceneInputError(path, None, f"MuJoCo cannot load it: {err}") from None
+
+
+def load_cameras(out_dir: Path) -> list[Camera]:
+    path = out_dir / CAMERAS_FILE
+    return read_transforms_json(path) if path.is_file() else []
+
+
+class Environment:
+    """One simulated world whose Gaussians follow its bodies (module docstring)."""
+
+    def __init__(self, out_dir: Path, model, background: GaussianSplatData,
+                 objects: list[tuple[int, np.ndarray, GaussianSplatData]], cameras: list[Camera]):
+        import mujoco
+
+        self.out_dir = Path(out_dir)
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.cameras = cameras
+        self.objects: list[SceneObject] = []
+        parts, body, start = [], [], 0
+        for index, (object_id, pose0, splats) in enumerate(objects):
+            name = f"object_{object_id}"
+            body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+            if body_id < 0:
+                raise SceneInputError(self.out_dir / SCENE_FILE, f"body '{name}'",
+                                      "missing (expected one free body per accepted object)")
+            self.objects.append(SceneObject(object_id, name, body_id, np.asarray(pose0, np.float64),
+                                            slice(start, start + splats.num)))
+            parts.append(splats.to_kernel())
+            body.append(np.full(splats.num, index, np.int32))
+            start += splats.num
+        self.background = background.to_kernel()
+        empty = Gaussians(*(jnp.zeros((0,) + x.shape[1:], x.dtype) for x in
+                            (self.background.means, self.background.quats, self.background.log_scales,
+                             self.background.opacity_logits, self.background.sh)))
+        self.object_gaussians = concatenate(parts) if parts else empty
+        self.body_index = jnp.asarray(np.concatenate(body) if body else np.zeros(0, np.int32))
+        self.reset()
+
+    # --- loading ---------------------------------------------------------------------
+
+    @classmethod
+    def load(cls, out_dir: str | Path, with_pusher: bool = False) -> "Environment":
+        """Read a converted scene folder (``phirie convert`` output)."""
+        out_dir = Path(out_dir)
+        manifest_path = out_dir / "manifest.json"
+        if not manifest_path.is_file():
+            raise SceneInputError(manifest_path, None, "missing (expected a `phirie convert` output folder)")
+        manifest = json.loads(manifest_path.read_text())
+        model = _load_model(out_dir, with_pusher)
+        if not (out_dir / BACKGROUND_FILE).is_file():
+            raise SceneInputError(out_dir / BACKGROUND_FILE, None, "missing (expected the background stage's PLY)")
+        background = read_gaussian_ply(out_dir / BACKGROUND_FILE)
+        objects = []
+        for obj in manifest.get("objects", []):
+            if obj.get("status") != "accepted" or not obj.get("visual") or not obj.get("collision"):
+                continue
+            splats = read_gaussian_ply(out_dir / obj["visual"])
+            if splats.sh_degree != background.sh_degree:
+                splats = _match_degree(splats, background.sh_degree)
+            objects.append((int(obj["id"]), np.asarray(obj["pose"], np.float64), splats))
+        return cls(out_dir, model, background, objects, load_cameras(out_dir))
+
+    # --- simulation ------------------------------------------------------------------
+
+    def reset(self) -> None:
+        import mujoco
+
+        mujoco.mj_resetData(self.model, self.data)
+        mujoco.mj_forward(self.model, self.data)
+        self._pose_t0 = self.body_poses()
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def timestep(self) -> float:
+        return float(self.model.opt.timestep)
+
+    def step(self, steps: int = 1) -> None:
+        import mujoco
+
+        mujoco.mj_step(self.model, self.data, nstep=int(steps))
+
+    def body_poses(self) -> np.ndarray:
+        """(K, 4, 4) current world poses T_i(t) of the object bodies."""
+        ids = [o.body_id for o in self.objects]
+        return body_matrix(self.data.xpos[ids], self.data.xquat[ids])
+
+    def placements(self) -> np.ndarray:
+        """(K, 4, 4) S_i(t) = T_i(t) T_i(0)⁻¹ S_i(0): canonical frame → scene, now."""
+        if not self.objects:
+            return np.zeros((0, 4, 4))
+        pose0 = np.stack([o.pose0 for o in self.objects])
+        return self.body_poses() @ np.linalg.inv(self._pose_t0) @ pose0
+
+    def object(self, object_id: int) -> SceneObject:
+        for o in self.objects:
+            if o.id == object_id:
+                return o
+        raise KeyError(f"no simulated object with id {object_id}")
+
+    # --- rendering -------------------------------------------------------------------
+
+    def gaussians(self) -> Gaussians:
+        """All Gaussians of the scene, objects placed at their current poses."""
+        placements = jnp.asarray(self.placements(), jnp.float32).reshape(-1, 4, 4)
+        return compose_scene(self.background, self.object_gaussians, self.body_index, placements)
+
+    def camera(self, camera: Camera | int) -> Camera:
+        if isinstance(camera, Camera):
+            return camera
+        if not 0 <= camera < len(self.cameras):
+            raise SceneInputError(self.out_dir / CAMERAS_FILE, "camera",
+                                  f"{camera} (expected 0..{len(self.cameras) - 1})")
+        return self.cameras[camera]
+
+    def render(self, camera: Camera | int, background=(0.0, 0.0, 0.0), width: int | None = None):
+        """rgb / depth / alpha of the current state from one camera (``phirie_jax.render``)."""
+        from phirie_jax.render import render
+
+        cam = self.camera(camera)
+        if width is not None:
+            cam = cam.scaled(width / cam.width)
+        return render(self.gaussians(), cam, background=np.asarray(background, np.float32))
+
+    # --- interactions ----------------------------------------------------------------
+
+    def ray(self, camera: Camera | int, pixel) -> tuple[np.ndarray, np.ndarray]:
+        """World origin and unit direction of the ray through pixel (u, v) (pixel-centre convention)."""
+        cam = self.camera(camera)
+        direction_cam = np.linalg.solve(cam.K, np.array([pixel[0], pixel[1], 1.0]))
+        rot = cam.world_to_camera[:3, :3]
+        direction = rot.T @ direction_cam
+        return cam.center, direction / np.linalg.norm(direction)
+
+    def cast(self, origin, direction) -> tuple[int | None, np.ndarray | None]:
+        """First collision geometry along a ray: (object id or None, hit point or None)."""
+        import mujoco
+
+        geom = np.zeros(1, np.int32)
+        distance = mujoco.mj_ray(self.model, self.data, np.asarray(origin, np.float64),
+                                 np.asarray(direction, np.float64), None, 1, -1, geom)
+        if distance < 0:
+            return None, None
+        point = np.asarray(origin) + distance * np.asarray(direction)
+        body = int(self.model.geom_bodyid[geom[0]])
+        for o in self.objects:
+            if o.body_id == body:
+                return o.id, point
+        return None, point
+
+    def apply_impulse(self, object_id: int, point, impulse) -> None:
+        """Instantaneous impulse (N·s, world frame) at a world point: Δq̇ = M⁻¹ Jᵀ p."""
+        import mujoco
+
+        body = self.object(object_id).body_id
+        jacp = np.zeros((3, self.model.nv))
+        mujoco.mj_jac(self.model, self.data, jacp, None, np.asarray(point, np.float64), body)
+        generalized = (jacp.T @ np.asarray(impulse, np.float64))[None, :]  # (1, nv)
+        delta = np.zeros_like(generalized)
+        mujoco.mj_solveM(self.model, self.data, delta, generalized)
+        self.data.qvel[:] += delta[0]
+        mujoco.mj_forward(self.model, self.data)
+
+    def shoot(self, camera: Camera | int, pixel, speed: float = 1.5) -> dict:
+        """Hit whatever object the ray through ``pixel`` meets first, giving it ``speed`` (m/s)
+        along the ray (impulse = mass × speed at the hit point). Returns what was hit."""
+        origin, direction = self.ray(camera, pixel)
+        object_id, point = self.cast(origin, direction)
+        if object_id is None:
+            return {"hit": None, "point": None if point is None else point.tolist()}
+        mass = float(self.model.body_subtreemass[self.object(object_id).body_id])
+        self.apply_impulse(object_id, point, mass * speed * direction)
+        return {"hit": object_id, "point": point.tolist(), "impulse": (mass * speed * direction).tolist()}
+
+    def place(self, object_id: int, pose: np.ndarray | None = None, linear_velocity=None,
+              angular_velocity=None) -> None:
+        """Drop or throw: set a body's world pose (4×4 rigid) and/or velocity (world frame)."""
+        import mujoco
+
+        from kernels.gaussians import rotmat_to_quat
+
+        body = self.object(object_id).body_id
+        joint = int(self.model.body_jntadr[body])
+        qpos, qvel = int(self.model.jnt_qposadr[joint]), int(self.model.jnt_dofadr[joint])
+        if pose is not None:
+            pose = np.asarray(pose, np.float64)
+            self.data.qpos[qpos:qpos + 3] = pose[:3, 3]
+            self.data.qpos[qpos + 3:qpos + 7] = np.asarray(rotmat_to_quat(jnp.asarray(pose[:3, :3])))
+        if linear_velocity is not None:
+            self.data.qvel[qvel:qvel + 3] = linear_velocity
+        if angular_velocity is not None:  # free joints keep angular velocity in the body frame
+            rot = body_matrix(self.data.xpos[body], self.data.xquat[body])[:3, :3]
+            self.data.qvel[qvel + 3:qvel + 6] = rot.T @ np.asarray(angular_velocity, np.float64)
+        mujoco.mj_forward(self.model, self.data)
+
+    def push(self, start, end, seconds: float, on_step=None) -> None:
+        """Drive the kinematic pusher (``load(with_pusher=True)``) from ``start`` to ``end``."""
+        import mujoco
+
+        body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, PUSHER)
+        if body < 0:
+            raise RuntimeError("this environment has no pusher: load it with with_pusher=True")
+        mocap = int(self.model.body_mocapid[body])
+        steps = max(1, int(round(seconds / self.timestep)))
+        start, end = np.asarray(start, np.float64), np.asarray(end, np.float64)
+        for i in range(steps):
+            self.data.mocap_pos[mocap] = start + (end - start) * (i + 1) / steps
+            mujoco.mj_step(self.model, self.data)
+            if on_step is not None:
+                on_step(i)
+        self.data.mocap_pos[mocap] = [0.0, 0.0, -10.0]
+
+
+def _match_degree(splats: GaussianSplatData, degree: int) -> GaussianSplatData:
+    """Pad (with zeros) or truncate SH bands so every set rasterizes together."""
+    k = (degree + 1) ** 2
+    sh = splats.sh[:, :k]
+    if sh.shape[1] < k:
+        sh = np.concatenate([sh, np.zeros((splats.num, k - sh.shape[1], 3), sh.dtype)], axis=1)
+    return dataclasses.replace(splats, sh=sh, layout=())
