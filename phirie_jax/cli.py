@@ -206,6 +206,37 @@ def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig =
     _print_objects(run_droptest(out, config))
 
 
+def simulate(out_dir: Annotated[Path, tyro.conf.Positional], out: Path = Path("rollout.mp4"),
+             shoot: tuple[float, float] | None = None, frames: int = 48, camera: int = 0,
+             speed: float = 2.5, width: int | None = None, fps: float = 24.0) -> None:
+    """Simulate a converted scene and render the rollout to a video from one of its cameras.
+    Default: shoot the largest object off its support so the filled background shows.
+
+    Args:
+        out_dir: a `phirie convert` output folder.
+        out: the video to write (.mp4).
+        shoot: pixel (u, v) of the camera to shoot through; default: the largest object's centre.
+        frames: frames rendered after the shot.
+        camera: camera index K (the K-th image in name order).
+        speed: speed (m/s) the shot gives the hit object, along the ray.
+        width: render width in pixels (default: the camera's).
+        fps: frames per second of simulated time and of the video.
+    """
+    from rich.console import Console
+
+    from phirie_jax.interact.environment import Environment
+    from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
+
+    env = Environment.load(out_dir)
+    config = RolloutConfig(frames=frames, fps=fps, camera=camera, width=width, speed=speed, shoot_at=shoot)
+    with Console().status("simulating") as status:
+        result = rollout(env, config, on_frame=lambda i: status.update(f"frame {i + 1}/{frames}"))
+    write_video(out, result["frames"], fps)
+    hit = result["shot"].get("hit")
+    moved = ", ".join(f"{k}: {100 * v:.1f} cm" for k, v in result["moved_m"].items())
+    print(f"wrote {out} ({len(result['frames'])} frames); shot hit object {hit}; moved {moved}")
+
+
 def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large"] = "default",
          seed: int = 0) -> None:
     """The whole job on the embedded default scene (what `make demo` runs).
@@ -221,7 +252,7 @@ def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large
 
 
 COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
-            "convert": convert, "droptest": droptest, "demo": demo}
+            "convert": convert, "droptest": droptest, "simulate": simulate, "demo": demo}
 
 
 def main(argv: list[str] | None = None) -> int:
