@@ -4,10 +4,13 @@
         --scene-root /tmp/scenes --work /tmp/objects_eval --out experiments/results/objects_eval.json
 
 Scenes: synthetic ``default`` tabletops (synthesized under ``--scene-root/eval<seed>`` when
-missing) and YCB tabletops built here from ``../shared/data/ycb`` (the three scanned meshes,
-placed upright at random yaws on the synthetic table, 36 ring cameras, masks projected from
-the meshes with occlusion). Both go through the observation stage with their mask files and
-scan surface, then through ``run_objects`` once per row.
+missing); the same scenes seen from one side only (``synthetic_one_side``: only the masks of
+the cameras within a ``--arc-deg`` azimuth arc, centred at a seeded direction, are given, so
+Q covers part of each object and the visual hull has few views); and YCB tabletops built here
+from ``../shared/data/ycb`` (the three scanned meshes, placed upright at random yaws on the
+synthetic table, 36 ring cameras, masks projected from the meshes with occlusion). All go
+through the observation stage with their mask files and scan surface, then through
+``run_objects`` once per row.
 
 External candidates (``candidates/<id>/``), seeded per object:
 - synthetic: ``gen_a`` and ``gen_b``, each independently the ground-truth canonical mesh in a
@@ -79,6 +82,35 @@ def random_frame(vertices: np.ndarray, rng) -> tuple[np.ndarray, dict]:
     v = vertices @ to_file.T
     v = (v - v.mean(0)) / np.max(v.max(0) - v.min(0))
     return v + rng.normal(0, NOISE, v.shape), {"up_axis": AXIS_NAMES[axis], "yaw_deg": float(np.degrees(yaw))}
+
+
+def link_scene(src: Path, dst: Path, keep_masks=None) -> None:
+    """``dst``: a scene folder of symlinks to ``src`` (candidates/ left out; with ``keep_masks``,
+    masks/ holds only those mask files)."""
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    for entry in src.iterdir():
+        if entry.name == "candidates" or (entry.name == "masks" and keep_masks is not None):
+            continue
+        (dst / entry.name).symlink_to(entry.resolve())
+    if keep_masks is not None:
+        (dst / "masks").mkdir()
+        for name in keep_masks:
+            (dst / "masks" / name).symlink_to((src / "masks" / name).resolve())
+
+
+def one_side_masks(scene_dir: Path, arc_deg: float, seed: int) -> list[str]:
+    """Mask files of the cameras whose azimuth (about the table centre) is within the arc."""
+    from phirie_jax.io.scene import load_scene
+
+    centre = np.random.default_rng(seed).uniform(-np.pi, np.pi)
+    keep = []
+    for cam in load_scene(scene_dir, check_images=False).cameras:
+        azimuth = np.arctan2(cam.center[1], cam.center[0])
+        if abs((azimuth - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(arc_deg) / 2:
+            keep.append(Path(cam.name).with_suffix(".png").name)
+    return keep
 
 
 def synthetic_candidates(scene_dir: Path, seed: int) -> dict:
@@ -293,6 +325,8 @@ def summarize(rows: dict[str, list[dict]], total_objects: int) -> dict:
             "time_per_object_s": {"median": round(statistics.median(times), 3) if times else None,
                                   "mean": mean(times)},
             "compiles_during_timed_runs": sum(sum(r["traces"].values()) for r in runs),
+            "external_candidates": {kind: sum(c["kind"] == kind for r in runs for c in r["candidates"])
+                                    for kind in ("gt", "decoy")},
             "gt_candidates": {"count": len(gt_cands),
                               "placed_f1_20_at_least_0.9": sum(c["f1_20"] >= F1_TARGET for c in gt_cands),
                               "fraction": round(sum(c["f1_20"] >= F1_TARGET for c in gt_cands) / len(gt_cands), 4)
@@ -309,12 +343,13 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("/tmp/objects_eval"))
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--rows", nargs="*", default=list(ROWS))
+    parser.add_argument("--arc-deg", type=float, default=120.0, help="one-sided set: camera arc (0: skip)")
     args = parser.parse_args()
     if set(args.seeds) & set(DEV_SEEDS):
         print(f"warning: seeds {sorted(set(args.seeds) & set(DEV_SEEDS))} were used while developing", flush=True)
     configs = {name: ObjectsConfig(**ROWS[name]) for name in args.rows}
 
-    sets: dict[str, list[tuple[Path, Path, dict]]] = {"synthetic": [], "ycb": []}
+    sets: dict[str, list[tuple[Path, Path, dict]]] = {"synthetic": [], "synthetic_one_side": [], "ycb": []}
     for seed in args.seeds:
         src = args.scene_root / f"eval{seed}"
         if not (src / "gt" / "objects.json").exists():
@@ -322,13 +357,14 @@ def main() -> None:
 
             synthesize(src, "default", seed)
         scene = args.work / f"syn{seed}" / "scene"
-        if not scene.exists():
-            scene.mkdir(parents=True)
-            for entry in src.iterdir():
-                (scene / entry.name).symlink_to(entry.resolve())
-        shutil.rmtree(scene / "candidates", ignore_errors=True)
+        link_scene(src, scene)
         truth = synthetic_candidates(scene, seed)
         sets["synthetic"].append((scene, args.work / f"syn{seed}" / "observed", truth))
+        if args.arc_deg > 0:
+            side = args.work / f"side{seed}" / "scene"
+            link_scene(src, side, keep_masks=one_side_masks(src, args.arc_deg, seed))
+            (side / "candidates").symlink_to((scene / "candidates").resolve())
+            sets["synthetic_one_side"].append((side, args.work / f"side{seed}" / "observed", truth))
     if YCB.is_dir():
         for seed in args.ycb_seeds:
             scene = args.work / f"ycb{seed}" / "scene"
@@ -346,6 +382,7 @@ def main() -> None:
     metrics = Metrics()
     result = {"machine": {"platform": platform.platform(), "cpus": __import__("os").cpu_count()},
               "warm_up_s": round(compile_s, 1), "rows": list(configs), "noise": NOISE, "decoy_p": DECOY_P,
+              "arc_deg": args.arc_deg,
               "configs": {k: dataclasses.asdict(v) for k, v in configs.items()}}
     for set_name, entries in sets.items():
         if not entries:

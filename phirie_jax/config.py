@@ -179,6 +179,8 @@ class RegistrationConfig:
         rotation: ours — "full" (3D Kabsch) or "yaw" (rotation about up only) in ICP.
         chunk: queries per brute-force nearest-neighbour block (static).
         hypothesis_batch: hypotheses vmapped together (static; memory ∝ batch · chunk · points).
+            None: 36 on a CPU, all of them on a GPU (measured: the whole search takes 7 ms on an
+            H100 with all 648 together).
         min_obs_bucket: Q is padded to the next power of two, at least this (static buckets).
         batched_retry: ours — True scores all six up axes in the first (and only) kernel call, so
             the retry is a host-side choice; False searches +z first and calls the kernel again
@@ -202,7 +204,7 @@ class RegistrationConfig:
     icp_max_correspondence: float = 0.06
     rotation: str = "full"
     chunk: int = 256
-    hypothesis_batch: int = 36
+    hypothesis_batch: int | None = None
     min_obs_bucket: int = 256
     batched_retry: bool = True
     seed: int = 0

@@ -197,12 +197,18 @@ def _write_assets(chosen: dict, candidate: Candidate, inst: InstanceInput, q_wor
             "visual_info": visual}
 
 
+def _entry_for(instance_id: int, reason: str | None = None) -> dict:
+    """An ``objects`` entry with every contract field (DESIGN.md), failed until filled in.
+    ``collision``, ``mass``, ``friction`` and ``drop_test`` are the physics stage's."""
+    return {"id": int(instance_id), "status": "failed", "reason": reason, "candidate": None, "pose": None,
+            "mesh": None, "visual": None, "collision": [], "mass": None, "friction": None, "checks": {},
+            "candidates": [], "drop_test": None}
+
+
 def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
                      config: ObjectsConfig, out_dir: Path, clock: _Clock) -> dict:
     """The manifest ``objects`` entry of one instance (writes its asset files when accepted)."""
-    out = {"id": inst.id, "status": "failed", "reason": None, "candidate": None, "pose": None, "mesh": None,
-           "visual": None, "collision": [], "mass": None, "friction": None, "checks": {}, "candidates": [],
-           "drop_test": None, "support": {"height": inst.support.height, "source": inst.support.source}}
+    out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
     t0 = time.perf_counter()
@@ -257,7 +263,7 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
             data = dict(np.load(out_dir / record["points"]))
             loaded.append((record, data["points"].astype(np.float64), data))
         except (OSError, KeyError, ValueError) as err:
-            objects.append({"id": record["id"], "status": "failed", "reason": f"observed points unreadable: {err}"})
+            objects.append(_entry_for(record["id"], f"observed points unreadable: {err}"))
     t0 = time.perf_counter()
     supports = [find_support(frame.to_gravity(q), frame, raycaster) for _, q, _ in loaded]
     frame = refine_frame(frame, supports)
@@ -269,7 +275,7 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
             inst = _instance_input(record, q, data, frame, support, scene, out_dir)
             entry = construct_object(record, q, inst, scene, config, out_dir, clock)
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
-            entry = {"id": record["id"], "status": "failed", "reason": f"{type(err).__name__}: {err}",
+            entry = {**_entry_for(record["id"], f"{type(err).__name__}: {err}"),
                      "traceback": traceback.format_exc(limit=4)}
         entry["time_s"] = time.perf_counter() - t_obj
         objects.append(entry)

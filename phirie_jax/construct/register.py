@@ -102,14 +102,21 @@ class Hypothesis:
                 "axis": self.axis, "yaw_deg": self.yaw_deg}
 
 
+CPU_HYPOTHESIS_BATCH = 36   # bounds memory on a CPU; a GPU takes every hypothesis at once
+
+
 def search_spec(config: RegistrationConfig, axes: tuple[int, ...], snap: bool) -> SearchSpec:
+    batch = config.hypothesis_batch
+    if batch is None:
+        batch = CPU_HYPOTHESIS_BATCH if jax.default_backend() == "cpu" else (
+            len(axes) * config.num_yaws * len(config.scale_multipliers))
     return SearchSpec(axes=axes, num_yaws=config.num_yaws, scale_multipliers=tuple(config.scale_multipliers),
                       top_k=config.top_k, refine_other_axes=config.refine_other_axes, model_points=config.points,
                       sweep_model_points=config.sweep_model_points, sweep_obs_points=config.sweep_obs_points,
                       icp_model_points=config.icp_model_points, icp_obs_points=config.icp_obs_points,
                       score_obs_points=config.score_obs_points,
                       icp_iterations=config.icp_iterations, scale_iterations=config.scale_iterations,
-                      rotation=config.rotation, chunk=config.chunk, hypothesis_batch=config.hypothesis_batch,
+                      rotation=config.rotation, chunk=config.chunk, hypothesis_batch=batch,
                       snap_to_support=snap)
 
 

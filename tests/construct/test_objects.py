@@ -145,6 +145,7 @@ def test_bad_instances_are_recorded_and_the_scene_goes_on(observed, tmp_path):
     result = run_objects(root, tmp_path, few)
     assert [o["id"] for o in result["objects"]] == ids
     assert result["objects"][0]["status"] == "failed" and "unreadable" in result["objects"][0]["reason"]
+    assert {"pose", "mesh", "visual", "checks", "candidates", "drop_test"} <= set(result["objects"][0])
     assert all(o["status"] == "failed" and "too few observed points" in o["reason"] for o in result["objects"][1:])
     with pytest.raises(SceneInputError, match="instances"):
         run_objects(root, tmp_path / "empty", FAST)
