@@ -23,8 +23,8 @@ For each candidate count (default 1, 64, 256, 1024):
 - ``agreement``: verdicts of MJX and PyBullet against MuJoCo C on the largest set, per kind;
 - ``agreement_hard``: the same on ``--hard`` cases near the protocol's edges (a box or cone
   0.3–1.5° past balance; small boxes toppling off an edge, drifting around the 3 cm threshold);
-- ``solver``: MuJoCo C with our solver settings (20 iterations, 10 line-search, tol 1e-6)
-  against MuJoCo's defaults (100, 50, 1e-8) on the same set: why the defaults are ours.
+- ``solver``: our solver settings (20 iterations, 10 line-search, tol 1e-6) against MuJoCo's
+  defaults (100, 50, 1e-8): C on the largest set, MJX on 64 of its cases (verdicts, drift, time).
 
     python experiments/bench_droptest.py --out experiments/results/bench_droptest_cpu.json
     python experiments/bench_droptest.py --counts 1 64 256 1024 4096 --buckets 1 4 16   # a GPU
@@ -182,7 +182,17 @@ def solver_check(bodies: list[DropBody], chosen: list[cases.Case], config: DropT
     _, fast = bench_c(bodies, config)
     drift = [abs(a.drift_m - b.drift_m) for a, b in zip(ref, fast)]
     stable_drift = [d for d, c in zip(drift, chosen) if c.expected_stable]
-    return {"ours": {"iterations": config.solver_iterations, "ls_iterations": config.line_search_iterations,
+    mjx_rows = {}
+    sub = bodies[:64]
+    for name, cfg in (("ours", config), ("mujoco_defaults", defaults)):
+        row, res = bench_mjx(sub, 1, cfg, 1)
+        mjx_rows[name] = (row, res)
+    mjx = {"candidates": len(sub), "ours_run_s": mjx_rows["ours"][0]["run_s"],
+           "defaults_run_s": mjx_rows["mujoco_defaults"][0]["run_s"],
+           "same_verdicts": [r.stable for r in mjx_rows["ours"][1]] == [r.stable for r in mjx_rows["mujoco_defaults"][1]],
+           "max_abs_drift_difference_m": max(abs(a.drift_m - b.drift_m) for a, b in
+                                             zip(mjx_rows["ours"][1], mjx_rows["mujoco_defaults"][1]))}
+    return {"mjx": mjx, "ours": {"iterations": config.solver_iterations, "ls_iterations": config.line_search_iterations,
                      "tolerance": config.tolerance, "steps_per_s": ours["steps_per_s"]},
             "mujoco_defaults": {"iterations": 100, "ls_iterations": 50, "tolerance": 1e-8,
                                 "steps_per_s": ref_row["steps_per_s"]},

@@ -1,4 +1,4 @@
-"""Interactive environment: simulator assets and drop tests (issue 6).
+"""Interactive environment. Simulator assets and drop tests (issue 6):
 
 collision   mesh repair, CoACD convex decomposition, hull decimation (MeshError for bad meshes)
 physics     priors (mass, friction, restitution → solref) and uniform-density mass properties
