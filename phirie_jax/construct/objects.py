@@ -193,7 +193,8 @@ def _write_assets(chosen: dict, candidate: Candidate, inst: InstanceInput, q_wor
         assets.write_visual(folder / "visual.ply", splats)
     return {"pose": frame.pose, "source_pose": inst.frame.matrix() @ m,
             "candidate_to_canonical": frame.candidate_to_canonical,
-            "mesh": f"objects/{inst.id}/mesh.obj", "visual": f"objects/{inst.id}/visual.ply" if splats else None,
+            "mesh": f"objects/{inst.id}/mesh.obj",
+            "visual": f"objects/{inst.id}/visual.ply" if splats is not None else None,
             "visual_info": visual}
 
 

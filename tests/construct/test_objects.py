@@ -13,6 +13,7 @@ import trimesh
 
 from phirie_jax.config import ObjectsConfig, ObserveConfig, RegistrationConfig
 from phirie_jax.construct import run_objects
+from phirie_jax.construct.assets import transform_splats
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
 from phirie_jax.observe import run_observe
@@ -38,6 +39,9 @@ def observed(tmp_path_factory):
     cand.mkdir(parents=True)
     verts, truth = in_random_frame(np.asarray(first.shape.mesh.vertices), 3, rng)  # the file's up is +y
     trimesh.Trimesh(verts, first.shape.mesh.faces).export(cand / "gen_a.obj")
+    splats = scene.capture.data.subset(scene.capture.labels == first.id)   # its Gaussians, in its file frame
+    to_file = np.linalg.inv(first.pose @ truth)                             # world → the file's frame
+    write_gaussian_ply(cand / "gen_a_splats.ply", transform_splats(splats, to_file))
     (cand / "broken.obj").write_text("v 0 0 0\nthis is not an obj\nf 1 2 99\n")
     decoy = root / "candidates" / str(scene.objects[1].id)
     decoy.mkdir(parents=True)
@@ -110,6 +114,17 @@ def test_external_candidate_in_a_y_up_frame_is_placed_and_the_broken_file_record
     assert not any(c["checks"]["registration"]["passed"] is False for c in [gen])
     ranks = sorted((c["rank"], c["name"]) for c in first["candidates"] if "rank" in c)
     assert ranks[0][1] == first["candidate"]
+
+
+def test_a_candidates_own_gaussians_are_placed_with_it(observed, tmp_path):
+    root, out, scene, _ = observed
+    shutil.copytree(out, tmp_path, dirs_exist_ok=True)
+    only = ObjectsConfig(**{**FAST.__dict__, "generators": ("external:gen_a",)})
+    first = run_objects(root, tmp_path, only)["objects"][0]
+    assert first["candidate"] == "external:gen_a" and first["visual_info"]["source"] == "candidate"
+    placed = transform_splats(read_gaussian_ply(tmp_path / first["visual"]), np.asarray(first["pose"]))
+    _, dist, _ = trimesh.proximity.closest_point(scene.objects[0].world_mesh(), placed.means.astype(np.float64))
+    assert np.percentile(dist, 95) < 0.006
 
 
 def test_the_decoy_loses_to_a_candidate_that_fits(constructed):
