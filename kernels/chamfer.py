@@ -13,8 +13,11 @@ are batched by their callers with ``vmap``. Two exact nearest-neighbour methods:
   (``Grid.overflow`` says when one does); distances beyond the cell are reported as
   "at least the cell size", which is all a clipped score needs.
 
-``experiments/bench_register.py`` measures both; the registration driver uses the one
-its config names.
+``experiments/bench_register.py`` measures both on the same data (d_τ of 20K placed points
+against 2K observed ones, exact grid capacity): the grid is 110× slower than brute force on
+the 2-core CPU and 4.5× slower on an H100 — at τ = 3 cm an object is only a few cells across,
+so the 27-cell stencil gathers about as many candidates as brute force streams, and gathers
+cost more than streamed arithmetic. Registration therefore uses brute force.
 """
 
 from __future__ import annotations
