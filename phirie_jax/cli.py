@@ -184,8 +184,9 @@ def _print_objects(manifest: dict) -> None:
     for obj in manifest.get("objects", []):
         failed = [name for name, row in (obj.get("checks") or {}).items() if row.get("passed") is False]
         drop = obj.get("drop_test") or {}
-        verdict = "—" if not drop else ("stable" if drop.get("stable") else "unstable") + \
-            f" ({100 * drop.get('drift_m', float('nan')):.1f} cm)"
+        drift = drop.get("drift_m")
+        verdict = "—" if not drop else ("stable" if drop.get("stable") else "unstable") + (
+            f" ({100 * drift:.1f} cm)" if drift is not None else f" ({drop.get('error') or 'not measured'})")
         candidate = obj.get("candidate")
         table.add_row(str(obj["id"]), obj.get("status", "?"),
                       str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—"),

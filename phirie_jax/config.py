@@ -390,8 +390,13 @@ class PhysicsConfig:
         coacd_threshold / max_parts: CoACD concavity threshold and part limit (issue: 0.05, 16).
         max_hull_vertices: vertices per convex part (CoACD decimation, then ours; ≤ the drop
             test's vertex budget).
-        coacd_preprocess / coacd_preprocess_resolution / coacd_resolution / coacd_mcts_nodes /
-            coacd_mcts_iterations / coacd_seed: CoACD's own settings (its defaults; seeded).
+        coacd_preprocess: CoACD's manifold remeshing: "auto" = only for a mesh repair could not
+            close; "on" / "off" force it.
+        coacd_preprocess_resolution / coacd_resolution / coacd_seed: CoACD's own settings (its
+            defaults; seeded).
+        coacd_mcts_nodes / coacd_mcts_iterations: CoACD's tree search (its defaults 20 / 150). Ours,
+            10 / 60, measured on the synthetic mug and bowl: 1.8× and 1.3× faster with hull volume
+            ratios 1.15 / 1.52 instead of 1.22 / 1.60.
         min_volume: a mesh whose convex hull encloses less than this (m³) has zero volume and
             fails (a flat sheet cannot be a rigid body).
         background: "supports" (a box under each support the objects stand on, fitted to the
@@ -413,8 +418,8 @@ class PhysicsConfig:
     coacd_preprocess: str = "auto"
     coacd_preprocess_resolution: int = 50
     coacd_resolution: int = 2000
-    coacd_mcts_nodes: int = 20
-    coacd_mcts_iterations: int = 150
+    coacd_mcts_nodes: int = 10
+    coacd_mcts_iterations: int = 60
     coacd_seed: int = 0
     min_volume: float = 1e-9
     background: str = "supports"

@@ -252,8 +252,11 @@ def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig) -> list[np.ndarray]:
 
     coacd.set_log_level("error")
     preprocess = config.coacd_preprocess
-    if preprocess == "auto" and not mesh.watertight:
-        preprocess = "on"   # CoACD's manifold remeshing closes what hole filling could not
+    if preprocess == "auto":
+        # CoACD's manifold remeshing closes what hole filling could not; a watertight mesh
+        # skips it (CoACD's own "auto" remeshes self-intersecting closed meshes such as a mug
+        # whose handle enters its wall: 169 s → 20 s, with tighter hulls, measured)
+        preprocess = "off" if mesh.watertight else "on"
     result = coacd.run_coacd(
         coacd.Mesh(mesh.vertices, mesh.faces), threshold=config.coacd_threshold, max_convex_hull=config.max_parts,
         preprocess_mode=preprocess, preprocess_resolution=config.coacd_preprocess_resolution,
