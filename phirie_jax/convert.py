@@ -27,21 +27,21 @@ class ConvertConfig:
     Attributes:
         observe: Scene Observation.
         objects: object candidates, registration, checks and selection.
-        physics: collision, physics priors, export and drop tests.
-        strict: reject an object whose best candidate fails a check instead of keeping it.
+        physics: collision, physics priors, export and drop tests (also the candidates'
+            settling check while ranking).
     """
 
     observe: ObserveConfig = ObserveConfig()
     objects: ObjectsConfig = ObjectsConfig()
     physics: PhysicsConfig = PhysicsConfig()
-    strict: bool = False
 
 
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
                 masks: str | Path | None = None, gaussians: str | Path | None = None,
-                surface: str | Path | None = None, progress=None) -> dict:
+                surface: str | Path | None = None, strict: bool = False, progress=None) -> dict:
     """Run every stage on ``scene_dir``; returns the final manifest (a dict).
 
+    ``strict`` rejects an object whose best candidate fails a check instead of keeping it;
     ``progress(stage)`` is called as each stage starts.
     """
     from phirie_jax.construct.objects import run_objects
@@ -65,7 +65,7 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     stage("observe")
     run_observe(scene_dir, out_dir, config.observe, masks=masks, scene=scene)
     stage("objects")
-    run_objects(scene_dir, out_dir, config.objects, strict=config.strict, scene=scene)
+    run_objects(scene_dir, out_dir, config.objects, strict=strict, scene=scene, physics=config.physics)
     stage("physics")
     run_physics(scene_dir, out_dir, config.physics)
     manifest = Manifest.load_or_create(out_dir)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.config import ObjectsConfig, to_dict
+from phirie_jax.config import ObjectsConfig, PhysicsConfig, to_dict
 from phirie_jax.construct import assets
 from phirie_jax.construct.candidates import Candidate, candidate_pool
 from phirie_jax.construct.checks import candidate_checks, failed, first_by_priority, hull_volume, rank, rank_key
@@ -206,9 +206,28 @@ def _entry_for(instance_id: int, reason: str | None = None) -> dict:
             "candidates": [], "drop_test": None}
 
 
+def settle_candidates(entries: list[dict], pool: list[Candidate], up: np.ndarray, category: str | None,
+                      physics: PhysicsConfig) -> None:
+    """Drop-test every registered candidate at its placement in one batch (single-hull
+    stand-in, the paper's protocol) and fill in its settling check, so ranking sees it."""
+    from phirie_jax.interact.droptest import drop_test_meshes, settling_check
+
+    by_name = {c.name: c for c in pool}
+    placed = [e for e in entries if e.get("pose") is not None and e["name"] in by_name]
+    if not placed:
+        return
+    meshes = [(by_name[e["name"]].vertices, by_name[e["name"]].faces) for e in placed]
+    results = drop_test_meshes(meshes, [e["pose"] for e in placed], up=up,
+                               categories=[category] * len(placed), config=physics)
+    for e, result in zip(placed, results):
+        e["checks"] = {**e["checks"], "settling": settling_check(result, physics.drop_test, "convex hull stand-in")}
+
+
 def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
-                     config: ObjectsConfig, out_dir: Path, clock: _Clock) -> dict:
-    """The manifest ``objects`` entry of one instance (writes its asset files when accepted)."""
+                     config: ObjectsConfig, out_dir: Path, clock: _Clock,
+                     physics: PhysicsConfig | None = None) -> dict:
+    """The manifest ``objects`` entry of one instance (writes its asset files when accepted).
+    With ``physics``, every candidate is drop-tested before ranking (settling check)."""
     out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
@@ -220,6 +239,10 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
     entries = [register_candidate(c, obs, config, clock) for c in pool]
     for e in entries:
         e["pose"] = None if "gravity_matrix" not in e else inst.frame.matrix() @ e["gravity_matrix"]
+    if physics is not None:
+        t0 = time.perf_counter()
+        settle_candidates(entries, pool, inst.frame.up, record.get("category"), physics)
+        clock.add("objects.settle", t0)
     chosen = _select(entries, config)
     for position, e in enumerate(rank(entries)):
         e["rank"] = position
@@ -241,8 +264,13 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
 
 
 def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfig | None = None,
-                strict: bool = False, scene: SceneInput | None = None) -> dict:
-    """Construct every observed instance's object (see the module docstring). Returns the manifest."""
+                strict: bool = False, scene: SceneInput | None = None,
+                physics: PhysicsConfig | None = PhysicsConfig()) -> dict:
+    """Construct every observed instance's object (see the module docstring). Returns the manifest.
+
+    ``physics``: priors and drop-test settings for the candidates' settling check; None leaves
+    that check "not run".
+    """
     out_dir = Path(out_dir)
     config = config or ObjectsConfig()
     if strict and not config.strict:
@@ -274,7 +302,7 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
         t_obj = time.perf_counter()
         try:
             inst = _instance_input(record, q, data, frame, support, scene, out_dir)
-            entry = construct_object(record, q, inst, scene, config, out_dir, clock)
+            entry = construct_object(record, q, inst, scene, config, out_dir, clock, physics)
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
             entry = {**_entry_for(record["id"], f"{type(err).__name__}: {err}"),
                      "traceback": traceback.format_exc(limit=4)}

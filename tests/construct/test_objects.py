@@ -91,7 +91,9 @@ def test_every_instance_gets_an_object_entry_with_the_contract_fields(observed, 
         splats = read_gaussian_ply(work / obj["visual"])
         assert splats.num > 0
         assert set(obj["checks"]) == {"registration", "scale", "support", "collision", "settling"}
-        assert obj["checks"]["settling"]["passed"] is None and obj["checks"]["settling"]["status"] == "not_run"
+        # every candidate was drop-tested before ranking; the chosen one settles
+        assert obj["checks"]["settling"]["status"] == "run" and obj["checks"]["settling"]["passed"] is True
+        assert all(c["checks"]["settling"]["status"] in ("run", "failed") for c in obj["candidates"] if "checks" in c)
         names = [c["name"] for c in obj["candidates"]]
         assert {"visual_hull", "extrude", "primitive"} <= set(names)
         truth = next(o for o in scene.objects if o.id == obj["id"]).world_mesh()
