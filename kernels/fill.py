@@ -28,9 +28,10 @@ to [``min_log_scale``, ``max_log_scale``]). Its orientation (the plane's) and th
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
-import optax
 
 from kernels.gaussians import Gaussians
 from kernels.image_metrics import masked_l1_dssim
@@ -138,11 +139,17 @@ def batched_loss(params: FillParams, geom: FillGeometry, frames: FillFrame, *, w
     return total, (losses, jnp.any(overflow), jnp.max(needed))
 
 
-OPTIMIZER = optax.chain(optax.scale_by_adam(), optax.scale(-1.0))
+@functools.cache
+def optimizer():
+    """Adam with unit step (per-field learning rates are applied by ``fill_step``); optax is
+    imported here so that ``import kernels`` needs only jax and numpy."""
+    import optax
+
+    return optax.chain(optax.scale_by_adam(), optax.scale(-1.0))
 
 
 def init_state(params: FillParams):
-    return OPTIMIZER.init(params)
+    return optimizer().init(params)
 
 
 def fill_step(params: FillParams, opt_state, geom: FillGeometry, frames: FillFrame, lrs: FillParams, *,
@@ -154,6 +161,6 @@ def fill_step(params: FillParams, opt_state, geom: FillGeometry, frames: FillFra
     """
     (loss, aux), grads = jax.value_and_grad(batched_loss, has_aux=True)(
         params, geom, frames, width=width, config=config, dssim_weight=dssim_weight)
-    updates, opt_state = OPTIMIZER.update(grads, opt_state, params)
-    updates = jax.tree.map(lambda u, lr: u * lr, updates, lrs)
-    return optax.apply_updates(params, updates), opt_state, loss, aux
+    updates, opt_state = optimizer().update(grads, opt_state, params)
+    params = jax.tree.map(lambda p, u, lr: p + lr * u, params, updates, lrs)
+    return params, opt_state, loss, aux
