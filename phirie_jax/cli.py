@@ -150,9 +150,10 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, strict: bool = False, config: ConvertConfig = ConvertConfig()) -> None:
-    """Scene → interactive scene: observe → objects → physics, each adding to OUT/manifest.json
-    (instances; objects with meshes, visual Gaussians, checks; collision, scene.xml, URDFs,
-    drop tests).
+    """Scene → interactive scene: observe → objects → physics → background, each adding to
+    OUT/manifest.json (instances; objects with meshes, visual Gaussians, checks; collision,
+    scene.xml, URDFs, drop tests; background.ply with the objects removed and what they
+    uncover filled).
 
     Args:
         scene: a scene folder.
@@ -173,6 +174,26 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
                                strict=strict, progress=lambda stage: status.update(f"converting: {stage}"))
     _print_instances(manifest)
     _print_objects(manifest)
+    _print_background(manifest)
+
+
+def _print_background(manifest: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    b = manifest.get("background")
+    if not b:
+        return
+    table = Table(title=f"background: {b['source_gaussians']} → {b['gaussians']} Gaussians "
+                        f"({b['removed']} removed, {b['filled']} filled)")
+    for column in ("id", "status", "removed", "disks", "view", "reason"):
+        table.add_column(column)
+    for obj in b["objects"]:
+        removed = obj.get("removed") or {}
+        table.add_row(str(obj["id"]), obj["status"], str(removed.get("union", "—")),
+                      str((obj.get("fill") or {}).get("disks", "—")), str((obj.get("primary_view") or {}).get("view", "—")),
+                      str(obj.get("reason") or ""))
+    Console().print(table)
 
 
 def _print_objects(manifest: dict) -> None:

@@ -12,12 +12,12 @@ import dataclasses
 import time
 from pathlib import Path
 
-from phirie_jax.config import ObjectsConfig, ObserveConfig, PhysicsConfig
+from phirie_jax.config import BackgroundConfig, ObjectsConfig, ObserveConfig, PhysicsConfig
 from phirie_jax.io.scene import load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
 from phirie_jax.manifest import Manifest
 
-STAGES = ("observe", "objects", "physics")
+STAGES = ("observe", "objects", "physics", "background")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,11 +29,14 @@ class ConvertConfig:
         objects: object candidates, registration, checks and selection.
         physics: collision, physics priors, export and drop tests (also the candidates'
             settling check while ranking).
+        background: removal of the objects' source Gaussians, inpainting targets and the
+            plane-disk fill of what they uncover.
     """
 
     observe: ObserveConfig = ObserveConfig()
     objects: ObjectsConfig = ObjectsConfig()
     physics: PhysicsConfig = PhysicsConfig()
+    background: BackgroundConfig = BackgroundConfig()
 
 
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
@@ -44,6 +47,7 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     ``strict`` rejects an object whose best candidate fails a check instead of keeping it;
     ``progress(stage)`` is called as each stage starts.
     """
+    from phirie_jax.construct.background import run_background
     from phirie_jax.construct.objects import run_objects
     from phirie_jax.interact.stage import run_physics
     from phirie_jax.observe import run_observe
@@ -68,6 +72,8 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     run_objects(scene_dir, out_dir, config.objects, strict=strict, scene=scene, physics=config.physics)
     stage("physics")
     run_physics(scene_dir, out_dir, config.physics)
+    stage("background")
+    run_background(scene_dir, out_dir, config.background, scene=scene)
     manifest = Manifest.load_or_create(out_dir)
     manifest.record_timing("convert", time.perf_counter() - start)
     manifest.write()

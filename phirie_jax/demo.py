@@ -1,13 +1,15 @@
-"""The end-to-end job on the embedded default scene (``make demo``).
+"""The whole job on the embedded default scene (``make demo``).
 
-Today it synthesizes the default tabletop, reloads it through the scene loader
-exactly as a real capture would be read, renders previews from the loaded
-Gaussians and cameras beside the ground-truth images, and prints a summary with
-the time of each stage. Later stages (observe, construct, simulate) extend it.
+1. synthesize the default tabletop (a capture with ground truth, written like a real one);
+2. convert it: observe → objects → physics (collision, MJCF/URDF, drop tests) → background;
+3. load the interactive environment, shoot the largest object and render the rollout to a
+   video, with stills before / after conversion / after the shot;
+4. print what was converted, how well (against the ground truth) and how long each stage took.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -44,35 +46,91 @@ def write_previews(scene_dir: Path, out_dir: Path, background, views: int = PREV
     return rows
 
 
+def placement_errors(manifest: dict, scene_dir: Path) -> dict[int, float]:
+    """Per accepted object: distance (m) between its placed base centre and the true object's."""
+    truth = {o["id"]: np.asarray(o["pose"]) for o in json.loads((scene_dir / "gt" / "objects.json").read_text())}
+    errors = {}
+    for obj in manifest.get("objects", []):
+        if obj.get("status") == "accepted" and obj["id"] in truth:
+            errors[obj["id"]] = float(np.linalg.norm(np.asarray(obj["pose"])[:3, 3] - truth[obj["id"]][:3, 3]))
+    return errors
+
+
 def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     from rich.console import Console
     from rich.table import Table
 
+    from phirie_jax.convert import run_convert
+    from phirie_jax.interact.environment import Environment
+    from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
     from phirie_jax.synthetic import synthesize
 
     console = Console()
     timings: dict[str, float] = {}
-    scene_dir = out / "scene"
-    t0 = time.perf_counter()
-    with console.status(f"synthesizing the {preset} tabletop scene (seed {seed})"):
-        scene = synthesize(scene_dir, preset=preset, seed=seed)
-    timings["synthesize"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    with console.status("rendering previews from the written scene"):
-        previews = write_previews(scene_dir, out / "previews", scene.config.background_rgb)
-    timings["previews"] = time.perf_counter() - t0
+    scene_dir, convert_dir, media = out / "scene", out / "convert", out / "media"
+
+    def timed(name, fn):
+        t0 = time.perf_counter()
+        with console.status(name) as status:
+            result = fn(status)
+        timings[name] = time.perf_counter() - t0
+        return result
+
+    scene = timed("synthesize", lambda s: synthesize(scene_dir, preset=preset, seed=seed))
+    bg = scene.config.background_rgb
+    previews = timed("previews", lambda s: write_previews(scene_dir, media, bg))
+    manifest = timed("convert", lambda s: run_convert(
+        scene_dir, convert_dir, progress=lambda stage: s.update(f"convert: {stage}")))
+    env = Environment.load(convert_dir)
+    rollout_config = RolloutConfig(background=bg)
+    captured = _render_capture(scene_dir, env.camera(rollout_config.camera), bg)
+    result = timed("rollout", lambda s: rollout(
+        env, rollout_config, on_frame=lambda i: s.update(f"rollout frame {i + 1}/{rollout_config.frames}")))
+    write_video(media / "rollout.mp4", result["frames"], rollout_config.fps)
+    write_png(media / "before.png", captured)
+    write_png(media / "after_conversion.png", result["frames"][0] / 255.0)
+    write_png(media / "after_shot.png", result["frames"][-1] / 255.0)
 
     table = Table(title=f"phirie demo → {out}")
     table.add_column("what")
     table.add_column("value")
-    table.add_row("scene", f"{scene_dir} ({len(scene.cameras)} cameras, "
-                           f"{scene.config.width}×{scene.config.height})")
-    table.add_row("objects", ", ".join(f"{o.id}:{o.shape.category}" for o in scene.objects))
-    table.add_row("Gaussians", f"{scene.capture.data.num:,} captured, "
-                               f"{scene.background.data.num:,} in the true background")
+    table.add_row("scene", f"{scene_dir} ({len(scene.cameras)} cameras {scene.config.width}×{scene.config.height}, "
+                           f"{scene.capture.data.num:,} Gaussians)")
+    table.add_row("true objects", ", ".join(f"{o.id}:{o.shape.category}" for o in scene.objects))
+    table.add_row("instances observed", str(len(manifest.get("instances", []))))
+    errors = placement_errors(manifest, scene_dir)
+    for obj in manifest.get("objects", []):
+        drop = obj.get("drop_test") or {}
+        failed = [k for k, v in (obj.get("checks") or {}).items() if v.get("passed") is False]
+        cand = obj.get("candidate")
+        name = cand.get("name") if isinstance(cand, dict) else cand
+        table.add_row(f"object {obj['id']}", f"{obj.get('status')} · candidate {name} · placed "
+                      f"{100 * errors.get(obj['id'], float('nan')):.1f} cm from truth · drop test "
+                      f"{'stable' if drop.get('stable') else 'unstable' if drop else '—'}"
+                      + (f" · failed checks {failed}" if failed else ""))
+    background = manifest.get("background") or {}
+    table.add_row("background", f"{background.get('removed', '—')} Gaussians removed, "
+                                f"{background.get('filled', '—')} filled")
+    table.add_row("shot", f"object {result['shot'].get('hit')} moved "
+                          f"{100 * result['moved_m'].get(result['shot'].get('hit'), 0.0):.1f} cm")
     for row in previews:
-        table.add_row(f"preview {row['name']}", f"re-render vs image: {row['psnr_db']} dB PSNR")
-    for stage, seconds in timings.items():
+        table.add_row(f"re-render {row['name']}", f"{row['psnr_db']} dB PSNR against the written image")
+    for stage, seconds in {**timings, **_stage_timings(manifest)}.items():
         table.add_row(f"time: {stage}", f"{seconds:.1f} s")
+    table.add_row("outputs", f"{convert_dir} (scene.xml, manifest.json, objects/, background.ply), "
+                             f"{media} (rollout.mp4, before/after stills, previews)")
     console.print(table)
-    return {"timings": timings, "previews": previews}
+    return {"timings": timings, "previews": previews, "manifest": manifest}
+
+
+def _stage_timings(manifest: dict) -> dict[str, float]:
+    """The conversion's own top-level stage timings (``observe``, ``objects``, ...)."""
+    return {f"  {k}": float(v) for k, v in (manifest.get("timings") or {}).items() if "." not in k and k != "convert"}
+
+
+def _render_capture(scene_dir: Path, camera, background) -> np.ndarray:
+    from phirie_jax.io.ply import read_gaussian_ply
+    from phirie_jax.render import render
+
+    splats = read_gaussian_ply(scene_dir / "point_cloud.ply").to_kernel()
+    return np.asarray(render(splats, camera, background=np.asarray(background, np.float32)).rgb)

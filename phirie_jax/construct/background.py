@@ -298,7 +298,8 @@ def _frames(data: GaussianSplatData, removed: np.ndarray, disk_set: DiskSet, reg
         try:
             external = (inpaint.read_external(external_folder, cameras[view])
                         if external_folder is not None and view in external_frames else None)
-            frames.append(inpaint.build_frame(data, removed, disk_set.disks, disk_set.normals(), crop, oids, cameras[view],
+            frames.append(inpaint.build_frame(data, removed, disk_set.disks, disk_set.normals(),
+                                              np.isin(disk_set.owner, oids), crop, oids, cameras[view],
                                               np.zeros(3, np.float32), config, crops, pad, external))
         except RuntimeError as err:  # e.g. the renderer's buffers: these objects are untargeted
             for oid in oids:

@@ -144,13 +144,13 @@ class Frame:
     objects: list[int]
     region: np.ndarray       # (C, C) bool
     hole: np.ndarray         # (C, C) bool: inpainted pixels
-    mask: np.ndarray         # (C, C) float32 loss weights
+    mask: np.ndarray         # (C, C) float32 loss weights (inside ``reach``)
     kept_rgb: np.ndarray     # (C, C, 3) the kept scene, rendered
     target: np.ndarray       # (C, C, 3)
     front_rgb: np.ndarray    # (C, C, 3)
     front_trans: np.ndarray  # (C, C)
     back_rgb: np.ndarray     # (C, C, 3)
-    reach: np.ndarray        # (C, C) bool: pixels the disks can touch
+    reach: np.ndarray        # (C, C) bool: pixels the frame's own disks can touch
     slab: GaussianSplatData  # kept Gaussians of the disks' depth band touching ``reach``, colour baked (SH DC)
     source: str              # "telea" | "ns" | "external"
 
@@ -285,9 +285,14 @@ def touching(data: GaussianSplatData, crop: Crop, reach: np.ndarray) -> np.ndarr
 
 
 def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: GaussianSplatData, disk_normals: np.ndarray,
-                crop: Crop, objects: list[int], camera_full: Camera, background: np.ndarray, config: BackgroundConfig,
-                crops: CropRenderer, pad: int, external: tuple[np.ndarray, np.ndarray | None] | None) -> Frame:
-    """Renders, region, hole, target and layers of one frame (module docstring)."""
+                own: np.ndarray, crop: Crop, objects: list[int], camera_full: Camera, background: np.ndarray,
+                config: BackgroundConfig, crops: CropRenderer, pad: int,
+                external: tuple[np.ndarray, np.ndarray | None] | None) -> Frame:
+    """Renders, region, hole, target and layers of one frame (module docstring).
+
+    own: (N,) bool, the disks of the frame's objects: the frame's loss covers the pixels they can
+    reach, and the fit renders there every disk and kept slab Gaussian that can touch them.
+    """
     cam = crop.camera
     idx = cull(data, cam)
     kept = idx[~removed[idx]]
@@ -333,8 +338,10 @@ def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: Gaussia
     else:
         target = inpaint(kept_rgb.astype(np.float32), hole, config.inpaint, config.inpaint_radius)
         source = config.inpaint
-    reach = disk_reach(disks_here, crop, config.max_disk_sigma * config.grid, config.grid) if disks_here.num \
+    own_here = all_disks.subset(np.flatnonzero(own))
+    reach = disk_reach(own_here, crop, config.max_disk_sigma * config.grid, config.grid) if own_here.num \
         else np.zeros((crop.size, crop.size), bool)
+    mask = mask & reach  # elsewhere the frame is the kept render: a constant of the loss
     near = touching(baked, crop, reach)
     return Frame(crop.view, crop, objects, region, hole, mask.astype(np.float32), kept_rgb.astype(np.float32),
                  target.astype(np.float32), f_rgb.astype(np.float32), f_t.astype(np.float32),

@@ -85,12 +85,12 @@ def initial_params(disk_set: DiskSet, size: int) -> fill_kernel.FillParams:
 
 
 def frame_disks(disk_set: DiskSet, frame: Frame, max_sigma: float, max_offset: float) -> np.ndarray:
-    """Indices of the disks that can touch the frame's crop while they are fitted."""
-    from phirie_jax.construct.views import cull
+    """Indices of the disks (any object's) that can touch the frame's reachable pixels while fitted."""
+    from phirie_jax.construct.inpaint import touching
 
     grown = dataclasses.replace(disk_set.disks, log_scales=np.full_like(disk_set.disks.log_scales, np.log(
         max_sigma + max_offset)))  # a disk moved by its offset stays inside a disc of σ + offset (3σ bound)
-    return cull(grown, frame.crop.camera)
+    return np.flatnonzero(touching(grown, frame.crop, frame.reach))
 
 
 def stack_frames(frames: list[Frame], count: int, disk_lists: list[np.ndarray]) -> fill_kernel.FillFrame:

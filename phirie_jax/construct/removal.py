@@ -132,15 +132,16 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
     """R_mask of every object (indices into ``data``) and a record per object."""
     means = data.means.astype(np.float64)
     candidates = [_in_box(means, o.bounds(config.bounds_margin)) for o in objects]
-    jobs: list[MaskJob] = []
+    picked = []
     for k, o in enumerate(objects):
         order = np.argsort(-o.pixels, kind="stable")[: config.mask_views]
-        for j in order:
-            view = int(o.views[j])
-            if view >= len(cameras) or o.pixels[j] <= 0:
-                continue
-            crop = make_crop(cameras[view], view, o.bboxes[j], config.mask_crop_sizes, config.crop_margin_px)
-            jobs.append(MaskJob(k, view, int(o.labels[j]), o.mask_paths[j], crop))
+        picked += [(k, int(j)) for j in order if int(o.views[j]) < len(cameras) and o.pixels[j] > 0]
+    # one crop size for the whole pass (one compiled program): the largest any view needs
+    size = max([make_crop(cameras[objects[k].views[j]], 0, objects[k].bboxes[j], config.mask_crop_sizes,
+                          config.crop_margin_px).size for k, j in picked], default=min(config.mask_crop_sizes))
+    jobs = [MaskJob(k, int(objects[k].views[j]), int(objects[k].labels[j]), objects[k].mask_paths[j],
+                    make_crop(cameras[objects[k].views[j]], int(objects[k].views[j]), objects[k].bboxes[j], (size,),
+                              config.crop_margin_px)) for k, j in picked]
     pad = pass_bucket([len(c) for c in candidates])
     votes = [np.zeros(len(c), np.int64) for c in candidates]
     seen = [np.zeros(len(c), np.int64) for c in candidates]
@@ -160,7 +161,11 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
             problems[job.obj].append(f"{job.mask_path}: {mask.shape[1]}×{mask.shape[0]}, camera is "
                                      f"{cam.width}×{cam.height}")
             continue
-        out = crops.render(data.subset(idx), job.crop, pad)
+        try:
+            out = crops.render(data.subset(idx), job.crop, pad)
+        except RuntimeError as err:  # the renderer's buffers: this view does not vote
+            problems[job.obj].append(f"view {job.view}: {err}")
+            continue
         depth = np.asarray(out.depth_normalized)
         alpha = np.asarray(out.alpha)
         uv, z = job.crop.camera.project(means[idx])

@@ -73,6 +73,8 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
     """MP4 (mp4v) of uint8 RGB frames, written to a temporary name and renamed."""
     import cv2
 
+    from phirie_jax.io.atomic import ordinary_file_mode
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix or ".mp4", dir=path.parent)
@@ -85,6 +87,7 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
         for frame in frames:
             writer.write(frame[..., ::-1])
         writer.release()
+        os.chmod(tmp, ordinary_file_mode())
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -154,3 +154,22 @@ def test_failed_write_leaves_the_old_file_untouched(tmp_path):
             raise RuntimeError("interrupted")
     assert path.read_bytes() == raw
     assert [p.name for p in tmp_path.iterdir()] == ["scene.ply"]
+
+
+def test_written_files_get_the_mode_of_an_ordinary_new_file(tmp_path):
+    import os
+    import stat
+
+    from phirie_jax.io.atomic import write_files, write_text
+
+    old = os.umask(0o022)
+    try:
+        write_text(tmp_path / "a.json", "{}")
+        write_files(tmp_path / "d", {"b.obj": b"v 0 0 0\n"})
+        (tmp_path / "plain").write_text("x")
+    finally:
+        os.umask(old)
+    expected = stat.S_IMODE((tmp_path / "plain").stat().st_mode)
+    assert expected == 0o644
+    for path in (tmp_path / "a.json", tmp_path / "d" / "b.obj"):
+        assert stat.S_IMODE(path.stat().st_mode) == expected, path
