@@ -52,9 +52,10 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
             "render_ms": round(1e3 * frame, 2), "frames_per_s": round(1.0 / frame, 2)}
 
 
-def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int) -> dict:
+def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
+                  collision: str) -> dict:
     t0 = time.perf_counter()
-    batch = BatchedEnvironment(env, worlds)
+    batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
     step_first, step_s = timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
     render_first, render_s = timed(lambda: batch.render(cameras).rgb, repeats)
@@ -71,7 +72,9 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     loop_render_s = time.perf_counter() - t0
     frames = worlds * len(cameras)
     return {
-        "worlds": worlds, "cameras": len(cameras), "steps": steps, "put_model_s": round(put_s, 2),
+        "worlds": worlds, "cameras": len(cameras), "steps": steps, "collision": collision,
+        "colliding_geoms": int(np.sum((batch.mj_model.geom_contype | batch.mj_model.geom_conaffinity) > 0)),
+        "put_model_s": round(put_s, 2),
         "step_compile_s": round(step_first - step_s, 2), "render_compile_s": round(render_first - render_s, 2),
         "world_steps_per_s": round(worlds * steps / step_s, 1),
         "frames_per_s": round(frames / render_s, 2),
@@ -90,6 +93,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=240, help="simulator steps per timed call")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--width", type=int, default=None, help="render width (default: the cameras')")
+    parser.add_argument("--collision", choices=["hull", "parts"], default="hull",
+                        help="the batched worlds' collision model (phirie_jax.interact.mjx_model)")
     args = parser.parse_args()
 
     env = Environment.load(args.out_dir)
@@ -105,8 +110,9 @@ def main() -> None:
         "single": bench_single(env, cameras, 10 * args.steps, args.repeats),
         "batched": [],
     }
+    print(json.dumps(result["single"]), file=sys.stderr, flush=True)
     for worlds in args.worlds:
-        result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats))
+        result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats, args.collision))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
     print(json.dumps(result, indent=1))
 

@@ -69,7 +69,8 @@ def compose_scene(background: Gaussians, objects: Gaussians, body, placements) -
     return concatenate([background, moved])
 
 
-def _load_model(out_dir: Path, with_pusher: bool):
+def load_spec(out_dir: Path, with_pusher: bool = False):
+    """The ``scene.xml`` of a converted folder as a ``mujoco.MjSpec`` (plus the pusher body)."""
     import mujoco
 
     path = out_dir / SCENE_FILE
@@ -78,12 +79,20 @@ def _load_model(out_dir: Path, with_pusher: bool):
                                           "run `phirie convert` first)")
     try:
         spec = mujoco.MjSpec.from_file(str(path))
-        if with_pusher:
-            body = spec.worldbody.add_body(name=PUSHER, mocap=True, pos=[0.0, 0.0, -10.0])
-            body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=list(PUSHER_HALF_SIZE), rgba=[0.2, 0.2, 0.2, 1])
-        return spec.compile()
     except Exception as err:  # noqa: BLE001 — MuJoCo's own message names the problem
         raise SceneInputError(path, None, f"MuJoCo cannot load it: {err}") from None
+    if with_pusher:
+        body = spec.worldbody.add_body(name=PUSHER, mocap=True, pos=[0.0, 0.0, -10.0])
+        body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=list(PUSHER_HALF_SIZE), rgba=[0.2, 0.2, 0.2, 1])
+    return spec
+
+
+def _load_model(out_dir: Path, with_pusher: bool):
+    spec = load_spec(out_dir, with_pusher)
+    try:
+        return spec.compile()
+    except Exception as err:  # noqa: BLE001
+        raise SceneInputError(out_dir / SCENE_FILE, None, f"MuJoCo cannot load it: {err}") from None
 
 
 def load_cameras(out_dir: Path) -> list[Camera]:
@@ -99,6 +108,7 @@ class Environment:
         import mujoco
 
         self.out_dir = Path(out_dir)
+        self.with_pusher = False  # whether ``model`` carries the pusher body (``load``)
         self.model = model
         self.data = mujoco.MjData(model)
         self.cameras = cameras
@@ -145,7 +155,9 @@ class Environment:
             if splats.sh_degree != background.sh_degree:
                 splats = _match_degree(splats, background.sh_degree)
             objects.append((int(obj["id"]), np.asarray(obj["pose"], np.float64), splats))
-        return cls(out_dir, model, background, objects, load_cameras(out_dir))
+        env = cls(out_dir, model, background, objects, load_cameras(out_dir))
+        env.with_pusher = with_pusher
+        return env
 
     # --- simulation ------------------------------------------------------------------
 

@@ -196,6 +196,8 @@ def test_batched_worlds_step_like_the_single_environment_and_render_in_one_call(
     assert np.linalg.norm(placements[1, 0, :3, 3] - placements[0, 0, :3, 3]) > 0.02
     out = batch.render([0, 1])
     assert out.rgb.shape == (3, 2, 48, 64, 3)
+    chunked = batch.render([0, 1], max_images=2)  # one world per call, the last call padded
+    np.testing.assert_array_equal(np.asarray(chunked.rgb), np.asarray(out.rgb))
     for world in (0, 2):
         env.reset()
         env.data.qvel[:] = throws[world]
