@@ -122,8 +122,25 @@ def _print_instances(manifest: dict) -> None:
     console = Console()
     console.print(table)
     rejected = manifest.get("observe", {}).get("rejected_proposals", [])
-    timings = ", ".join(f"{k} {v:.1f} s" for k, v in manifest.get("timings", {}).items())
-    console.print(f"{len(rejected)} proposals rejected (reasons in manifest.json); {timings}")
+    console.print(f"{len(rejected)} proposals rejected (reasons in manifest.json)")
+
+
+def _print_timings(manifest: dict) -> None:
+    """Each stage's seconds, its steps indented under it (``stage.step`` keys)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="timings (s)")
+    table.add_column("stage")
+    table.add_column("seconds", justify="right")
+    timings = manifest.get("timings", {})
+    stages = dict.fromkeys(key.partition(".")[0] for key in timings)  # in the order they ran
+    for stage in stages:
+        table.add_row(stage, f"{timings[stage]:.1f}" if stage in timings else "")
+        for key, seconds in timings.items():
+            if key.startswith(stage + "."):
+                table.add_row(f"  {key[len(stage) + 1:]}", f"{seconds:.1f}")
+    Console().print(table)
 
 
 def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
@@ -145,7 +162,9 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     from phirie_jax.observe import run_observe
 
     loaded = load_scene(scene, gaussians=gaussians, surface=surface)
-    _print_instances(run_observe(scene, out, config, masks=masks, scene=loaded))
+    manifest = run_observe(scene, out, config, masks=masks, scene=loaded)
+    _print_instances(manifest)
+    _print_timings(manifest)
 
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
@@ -175,6 +194,7 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     _print_instances(manifest)
     _print_objects(manifest)
     _print_background(manifest)
+    _print_timings(manifest)
 
 
 def _print_background(manifest: dict) -> None:
