@@ -399,6 +399,8 @@ class PhysicsConfig:
             ratios 1.15 / 1.52 instead of 1.22 / 1.60.
         min_volume: a mesh whose convex hull encloses less than this (m³) has zero volume and
             fails (a flat sheet cannot be a rigid body).
+        workers: processes building the objects' collision in parallel (CoACD is single-threaded);
+            0: one per CPU core, 1: in this process.
         background: "supports" (a box under each support the objects stand on, fitted to the
             scene surface, plus a floor plane) or "plane" (one plane at the lowest support).
         support_thickness: thickness of a support box, below its top face.
@@ -422,6 +424,7 @@ class PhysicsConfig:
     coacd_mcts_iterations: int = 60
     coacd_seed: int = 0
     min_volume: float = 1e-9
+    workers: int = 0
     background: str = "supports"
     support_thickness: float = 0.04
     drop_test: DropTestConfig = DropTestConfig()
@@ -435,6 +438,8 @@ class PhysicsConfig:
             raise ValueError("physics: need mass > 0, friction ≥ 0 and 0 ≤ restitution < 1")
         if self.max_hull_vertices > self.drop_test.vertex_budget or self.max_hull_vertices < 4:
             raise ValueError("physics: need 4 ≤ max_hull_vertices ≤ drop_test.vertex_budget")
+        if self.workers < 0:
+            raise ValueError("physics: workers must be ≥ 0 (0: one per CPU core)")
         if self.max_parts > self.drop_test.part_buckets[-1]:
             raise ValueError("physics: max_parts exceeds the drop test's largest part bucket")
 

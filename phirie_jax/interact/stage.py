@@ -88,6 +88,50 @@ def build_object(entry: dict, category: str | None, out_dir: Path, config: Physi
                         "mass_properties": mass.record(), "collision": collision.report}}
 
 
+def _build_outcome(entry: dict, category: str | None, out_dir: Path, config: PhysicsConfig) -> dict:
+    """``{"update": ...}`` of ``build_object``, or ``{"reason": ..., ["traceback": ...]}``."""
+    try:
+        return {"update": build_object(entry, category, out_dir, config)}
+    except (MeshError, ValueError, OSError) as err:
+        return {"reason": str(err)}
+    except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
+        return {"reason": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc(limit=4)}
+
+
+def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig) -> list[dict]:
+    """``_build_outcome`` of every entry, in ``config.workers`` processes (CoACD is single-threaded).
+
+    A worker that dies (CoACD crashing in native code) takes only its object down: the objects
+    it left unfinished are retried alone, and the one that kills its process again is recorded.
+    """
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
+    workers = min(len(args), config.workers or os.cpu_count() or 1)
+    if workers <= 1:
+        return [_build_outcome(*a) for a in args]
+    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
+    outcomes: list[dict | None] = [None] * len(args)
+    with ProcessPoolExecutor(workers, mp_context=spawn) as pool:
+        futures = [pool.submit(_build_outcome, *a) for a in args]
+        for k, future in enumerate(futures):
+            try:
+                outcomes[k] = future.result()
+            except BrokenProcessPool:
+                pass
+    for k, outcome in enumerate(outcomes):
+        if outcome is None:
+            with ProcessPoolExecutor(1, mp_context=spawn) as alone:
+                try:
+                    outcomes[k] = alone.submit(_build_outcome, *args[k]).result()
+                except BrokenProcessPool:
+                    outcomes[k] = {"reason": "the collision process died (CoACD crashed on this mesh)"}
+    return outcomes
+
+
 def _drop_body(entry: dict, out_dir: Path, up: np.ndarray) -> tuple[dt.DropBody, SceneObject]:
     """The drop body and scene object of an exported object, read back from its files."""
     parts = tuple(read_part(_path(out_dir, p)) for p in entry["collision"])
@@ -155,15 +199,13 @@ def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: Physi
     start = time.perf_counter()
     up, categories = _up(manifest), _categories(manifest)
     t0 = time.perf_counter()
-    for entry in objects:
-        if entry.get("status") != "accepted":
-            continue
-        try:
-            entry.update(build_object(entry, categories.get(entry["id"]), out_dir, config))
-        except (MeshError, ValueError, OSError) as err:
-            _fail(entry, str(err), collision=[])
-        except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
-            _fail(entry, f"{type(err).__name__}: {err}", collision=[], traceback=traceback.format_exc(limit=4))
+    accepted = [e for e in objects if e.get("status") == "accepted"]
+    for entry, outcome in zip(accepted, build_objects(accepted, categories, out_dir, config)):
+        if "update" in outcome:
+            entry.update(outcome["update"])
+        else:
+            _fail(entry, outcome["reason"], collision=[],
+                  **({"traceback": outcome["traceback"]} if "traceback" in outcome else {}))
     manifest.record_timing("physics.collision", time.perf_counter() - t0)
     t0 = time.perf_counter()
     scene_objects, placed = [], []

@@ -193,3 +193,26 @@ def test_pose_scale_goes_into_the_files_and_the_inertia(tmp_path):
     lowest = min(data.geom_xpos[g, 2] for g in range(model.ngeom) if model.geom_bodyid[g] > 0)
     assert lowest > 0.75 - 0.01                          # parts placed at the true size, on the table
     assert result["drop_test"]["stable"]
+
+
+def test_parallel_and_in_process_builds_write_the_same_parts(physics, tmp_path):
+    from phirie_jax.interact.stage import build_objects
+
+    out, _, manifest = physics
+    entries = [{k: v for k, v in o.items() if k in ("id", "status", "pose", "mesh")}
+               for o in manifest["objects"] if o["id"] in (1, 2, 90)]
+    alone = tmp_path / "alone"
+    (alone / "objects").mkdir(parents=True)
+    for e in entries:
+        src = out / "objects" / str(e["id"]) / "mesh.obj"
+        (alone / "objects" / str(e["id"])).mkdir()
+        (alone / "objects" / str(e["id"]) / "mesh.obj").write_bytes(src.read_bytes())
+    import dataclasses
+
+    outcomes = build_objects(entries, {}, alone, dataclasses.replace(C_BACKEND, workers=1))
+    assert "reason" in outcomes[2] and "update" not in outcomes[2]  # the empty mesh fails the same way
+    for e, outcome in zip(entries[:2], outcomes[:2]):
+        parallel = next(o for o in manifest["objects"] if o["id"] == e["id"])
+        assert outcome["update"]["collision"] == parallel["collision"]
+        for path in parallel["collision"]:
+            assert (alone / path).read_bytes() == (out / path).read_bytes()
