@@ -111,3 +111,33 @@ def test_batched_environment_names_an_unknown_collision_model(scene):
     env = Environment(out, model, empty, [], [])
     with pytest.raises(ValueError, match="collision 'boxes'"):
         BatchedEnvironment(env, 2, collision="boxes")
+
+
+def _splats(n: int, seed: int) -> GaussianSplatData:
+    rng = np.random.default_rng(seed)
+    return GaussianSplatData(rng.uniform(-0.03, 0.03, (n, 3)).astype(np.float32),
+                             np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), -5.0, np.float32),
+                             np.zeros(n, np.float32), np.zeros((n, 1, 3), np.float32))
+
+
+def test_batched_worlds_on_the_hull_model_step_like_mujoco_c_on_it(scene):
+    from phirie_jax.interact.batched import BatchedEnvironment
+
+    out, model, _ = scene
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    objects = [(k, np.eye(4), _splats(8, k)) for k in (1, 2)]
+    env = Environment(out, model, _splats(8, 9), objects, [])
+    batch = BatchedEnvironment(env, 2)
+    assert colliding(batch.mj_model, "object_1") == ["object_1" + HULL_SUFFIX]
+    throws = np.zeros((2, model.nv))
+    throws[1, 0:3] = [0.3, 0.0, 0.6]   # world 1: the L thrown
+    batch.set_velocities(throws)
+    batch.step(96)
+    for world in range(2):
+        c = mujoco.MjData(batch.mj_model)
+        c.qvel[:] = throws[world]
+        mujoco.mj_step(batch.mj_model, c, 96)
+        np.testing.assert_allclose(np.asarray(batch.data.xpos[world]), c.xpos, atol=3e-3)
+    body = model.body("object_1").id
+    assert np.linalg.norm(np.asarray(batch.data.xpos[1, body] - batch.data.xpos[0, body])) > 0.02
