@@ -44,9 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.synthetic.truth import REGION_WEIGHT
+
 DEV_SEEDS = (0,)
 HELD_OUT = 12
-REGION_WEIGHT = 0.01
 HIDDEN_WEIGHT = 0.5  # a pixel shows the hidden tabletop where its Gaussians carry this much weight in the truth
 VARIANTS = {"telea": {"inpaint": "telea"}, "ns": {"inpaint": "ns"}, "init": {"inpaint": "telea", "iterations": 0}}
 
@@ -92,19 +93,10 @@ def held_out_cameras(scene_cameras, seed: int):
 
 
 def _truth(scene_dir: Path):
-    from scipy.spatial import cKDTree
+    from phirie_jax.synthetic.truth import background_truth
 
-    from phirie_jax.construct.background import concat
-    from phirie_jax.io.ply import read_gaussian_ply
-
-    capture = read_gaussian_ply(scene_dir / "point_cloud.ply")
-    labels = np.load(scene_dir / "gt" / "labels.npy")
-    background = read_gaussian_ply(scene_dir / "gt" / "background.ply")
-    d, _ = cKDTree(background.means).query(capture.means[labels == 0])
-    floaters = capture.subset(np.flatnonzero(labels == 0)[d > 1e-6])
-    d_hidden, _ = cKDTree(capture.means).query(background.means)
-    hidden = np.concatenate([d_hidden > 1e-6, np.zeros(floaters.num, bool)])  # the tabletop under the objects
-    return capture, labels, concat([background, floaters], background), hidden
+    t = background_truth(scene_dir)
+    return t.capture, t.labels, t.truth, t.hidden
 
 
 def _render(data, cams, background, features=None):

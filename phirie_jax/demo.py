@@ -56,6 +56,30 @@ def placement_errors(manifest: dict, scene_dir: Path) -> dict[int, float]:
     return errors
 
 
+def background_scores(scene_dir: Path, convert_dir: Path, manifest: dict, camera, background_rgb) -> dict:
+    """PSNR of the background stage's result against the truth (objects gone, hidden tabletop
+    included) in one view: inside the region the objects covered, with the fill and with the
+    removal alone, and outside it."""
+    from phirie_jax.io.ply import read_gaussian_ply
+    from phirie_jax.render import render
+    from phirie_jax.synthetic.truth import background_truth, uncovered_region
+
+    truth = background_truth(scene_dir)
+    region = uncovered_region(truth, camera, background_rgb)
+    result = read_gaussian_ply(convert_dir / manifest["background"]["path"])
+    removal_only = result.subset(np.arange(result.num - manifest["background"]["filled"]))
+    bg = np.asarray(background_rgb, np.float32)
+    images = {name: np.asarray(render(g.to_kernel(), camera, background=bg).rgb)
+              for name, g in (("truth", truth.truth), ("filled", result), ("removal_only", removal_only))}
+
+    def masked_psnr(image, mask):
+        return psnr(image[mask], images["truth"][mask])
+
+    return {"region_px": int(region.sum()), "uncovered": float(masked_psnr(images["filled"], region)),
+            "uncovered_removal_only": float(masked_psnr(images["removal_only"], region)),
+            "outside": float(masked_psnr(images["filled"], ~region))}
+
+
 def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     from rich.console import Console
     from rich.table import Table
@@ -111,6 +135,12 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     background = manifest.get("background") or {}
     table.add_row("background", f"{background.get('removed', '—')} Gaussians removed, "
                                 f"{background.get('filled', '—')} filled")
+    scores = None
+    if background.get("path"):
+        scores = background_scores(scene_dir, convert_dir, manifest, env.camera(rollout_config.camera), bg)
+        table.add_row("background vs truth", f"camera {rollout_config.camera}: uncovered region "
+                      f"({scores['region_px']} px) {scores['uncovered']:.1f} dB PSNR (removal alone "
+                      f"{scores['uncovered_removal_only']:.1f} dB), elsewhere {scores['outside']:.1f} dB")
     table.add_row("shot", f"object {result['shot'].get('hit')} moved "
                           f"{100 * result['moved_m'].get(result['shot'].get('hit'), 0.0):.1f} cm")
     for row in previews:
@@ -120,7 +150,7 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     table.add_row("outputs", f"{convert_dir} (scene.xml, manifest.json, objects/, background.ply), "
                              f"{media} (rollout.mp4, before/after stills, previews)")
     console.print(table)
-    return {"timings": timings, "previews": previews, "manifest": manifest}
+    return {"timings": timings, "previews": previews, "manifest": manifest, "background_scores": scores}
 
 
 def _stage_timings(manifest: dict) -> dict[str, float]:

@@ -28,3 +28,5 @@ def test_demo_writes_scene_video_stills_and_summary(tmp_path):
     assert manifest["background"]["filled"] > 0
     assert {"synthesize", "convert", "rollout"} <= set(result["timings"])
     assert all(p["psnr_db"] > 40 for p in result["previews"])  # the written images are our renders
+    scores = result["background_scores"]  # the targets, in the rollout camera
+    assert scores["region_px"] > 0 and scores["uncovered"] >= 25.0 and scores["outside"] >= 40.0, scores

@@ -100,3 +100,31 @@ def test_cli_observe_finds_every_object_of_the_tiny_scene(tmp_path, tiny_dir, ca
     assert manifest["schema"] == "phirie/1"
     assert sorted(i["id"] for i in manifest["instances"]) == [o.id for o in scene.objects]
     assert all(len(i["views"]) >= 2 for i in manifest["instances"])
+
+
+def test_background_truth_is_the_capture_without_its_objects_plus_the_hidden_tabletop(tiny_dir):
+    from phirie_jax.io.transforms_json import read_transforms_json
+    from phirie_jax.render import render
+    from phirie_jax.synthetic.truth import background_truth, uncovered_region
+
+    out, scene = tiny_dir
+    t = background_truth(out)
+    assert t.labels.shape == (t.capture.num,) and t.hidden.shape == (t.truth.num,)
+    # every background Gaussian of the capture is in the truth, no object Gaussian is
+    from scipy.spatial import cKDTree
+
+    d_bg, _ = cKDTree(t.truth.means).query(t.capture.means[t.labels == 0])
+    d_obj, _ = cKDTree(t.truth.means).query(t.capture.means[t.labels > 0])
+    assert d_bg.max() < 1e-6 and d_obj.min() > 1e-6
+    # the hidden tabletop lies under the objects, at the table's height
+    hidden = t.truth.means[t.hidden]
+    assert len(hidden) > 0
+    assert np.abs(hidden[:, 2] - scene.furniture.table_top_z).max() < 0.01
+    camera = read_transforms_json(out / "transforms.json")[0]
+    region = uncovered_region(t, camera, scene.config.background_rgb)
+    assert 0 < region.sum() < region.size
+    bg = np.asarray(scene.config.background_rgb, np.float32)
+    before = np.asarray(render(t.capture.to_kernel(), camera, background=bg).rgb)
+    after = np.asarray(render(t.truth.to_kernel(), camera, background=bg).rgb)
+    changed = np.abs(before - after).max(-1) > 0.05
+    assert changed[region].mean() > 0.5 and changed[~region].mean() < 0.01

@@ -1,4 +1,4 @@
-"""The drop-test benchmark's modules import with only jax, mujoco(-mjx), numpy and scipy
+"""The drop-test and environment benchmarks' modules import with only jax, mujoco(-mjx), numpy and scipy
 (a lent GPU machine may have nothing else). trimesh is not blocked: mujoco-mjx itself imports
 it (a dependency of that package), but our modules must not need it."""
 
@@ -10,7 +10,8 @@ from pathlib import Path
 
 BLOCKED = ("open3d", "coacd", "cv2", "optax", "tyro", "rich", "pybullet", "shapely", "rtree")
 MODULES = ("phirie_jax.interact.droptest", "phirie_jax.interact.mjx_batch", "phirie_jax.interact.cases",
-           "phirie_jax.interact.collision", "phirie_jax.interact.physics", "phirie_jax.config")
+           "phirie_jax.interact.collision", "phirie_jax.interact.physics", "phirie_jax.config",
+           "phirie_jax.interact.environment", "phirie_jax.interact.batched", "phirie_jax.interact.mjx_model")
 
 
 def test_benchmark_modules_import_without_the_mesh_stack():
