@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.synthetic.truth import REGION_WEIGHT
+from phirie_jax.synthetic.truth import REGION_WEIGHT, background_truth
 
 DEV_SEEDS = (0,)
 HELD_OUT = 12
@@ -90,13 +90,6 @@ def held_out_cameras(scene_cameras, seed: int):
         target = np.array([*rng.uniform(-0.15, 0.15, 2), 0.78])
         cams.append(Camera(f"heldout_{k:02d}", ref.K, look_at(eye, target), ref.width, ref.height))
     return cams
-
-
-def _truth(scene_dir: Path):
-    from phirie_jax.synthetic.truth import background_truth
-
-    t = background_truth(scene_dir)
-    return t.capture, t.labels, t.truth, t.hidden
 
 
 def _render(data, cams, background, features=None):
@@ -172,7 +165,8 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path) -> dict:
                            for o in b["objects"]]}
         print(f"seed {seed} {name}: {wall:.1f} s, removed {b['removed']}, filled {b['filled']}", flush=True)
 
-    capture, labels, truth, hidden_g = _truth(scene_dir)
+    t = background_truth(scene_dir)
+    capture, labels, truth, hidden_g = t.capture, t.labels, t.truth, t.hidden
     out0, b0 = runs["telea"]
     result = read_gaussian_ply(out0 / "background.ply")
     kept = result.subset(np.arange(result.num - b0["filled"]))

@@ -56,15 +56,14 @@ def placement_errors(manifest: dict, scene_dir: Path) -> dict[int, float]:
     return errors
 
 
-def background_scores(scene_dir: Path, convert_dir: Path, manifest: dict, camera, background_rgb) -> dict:
+def background_scores(truth, convert_dir: Path, manifest: dict, camera, background_rgb) -> dict:
     """PSNR of the background stage's result against the truth (objects gone, hidden tabletop
-    included) in one view: inside the region the objects covered, with the fill and with the
-    removal alone, and outside it."""
+    included; ``truth``: ``synthetic.truth.background_truth``) in one view: inside the region the
+    objects covered, with the fill and with the removal alone, and outside it."""
     from phirie_jax.io.ply import read_gaussian_ply
     from phirie_jax.render import render
-    from phirie_jax.synthetic.truth import background_truth, uncovered_region
+    from phirie_jax.synthetic.truth import uncovered_region
 
-    truth = background_truth(scene_dir)
     region = uncovered_region(truth, camera, background_rgb)
     result = read_gaussian_ply(convert_dir / manifest["background"]["path"])
     removal_only = result.subset(np.arange(result.num - manifest["background"]["filled"]))
@@ -87,7 +86,9 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     from phirie_jax.convert import run_convert
     from phirie_jax.interact.environment import Environment
     from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
+    from phirie_jax.render import render
     from phirie_jax.synthetic import synthesize
+    from phirie_jax.synthetic.truth import background_truth
 
     console = Console()
     timings: dict[str, float] = {}
@@ -107,7 +108,9 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
         scene_dir, convert_dir, progress=lambda stage: s.update(f"convert: {stage}")))
     env = Environment.load(convert_dir)
     rollout_config = RolloutConfig(background=bg)
-    captured = _render_capture(scene_dir, env.camera(rollout_config.camera), bg)
+    truth = background_truth(scene_dir)  # the capture, its labels and the scene without objects
+    captured = np.asarray(render(truth.capture.to_kernel(), env.camera(rollout_config.camera),
+                                 background=np.asarray(bg, np.float32)).rgb)
     result = timed("rollout", lambda s: rollout(
         env, rollout_config, on_frame=lambda i: s.update(f"rollout frame {i + 1}/{rollout_config.frames}")))
     write_video(media / "rollout.mp4", result["frames"], rollout_config.fps)
@@ -137,7 +140,7 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
                                 f"{background.get('filled', '—')} filled")
     scores = None
     if background.get("path"):
-        scores = background_scores(scene_dir, convert_dir, manifest, env.camera(rollout_config.camera), bg)
+        scores = background_scores(truth, convert_dir, manifest, env.camera(rollout_config.camera), bg)
         table.add_row("background vs truth", f"camera {rollout_config.camera}: uncovered region "
                       f"({scores['region_px']} px) {scores['uncovered']:.1f} dB PSNR (removal alone "
                       f"{scores['uncovered_removal_only']:.1f} dB), elsewhere {scores['outside']:.1f} dB")
@@ -156,11 +159,3 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
 def _stage_timings(manifest: dict) -> dict[str, float]:
     """The conversion's own top-level stage timings (``observe``, ``objects``, ...)."""
     return {f"  {k}": float(v) for k, v in (manifest.get("timings") or {}).items() if "." not in k and k != "convert"}
-
-
-def _render_capture(scene_dir: Path, camera, background) -> np.ndarray:
-    from phirie_jax.io.ply import read_gaussian_ply
-    from phirie_jax.render import render
-
-    splats = read_gaussian_ply(scene_dir / "point_cloud.ply").to_kernel()
-    return np.asarray(render(splats, camera, background=np.asarray(background, np.float32)).rgb)

@@ -79,6 +79,14 @@ class Manifest:
     def get(self, section: str, default: Any = None) -> Any:
         return self.data.get(section, default)
 
+    def require(self, section: str, written_by: str) -> Any:
+        """A section earlier stages write; missing → an error naming them (``written_by``, e.g.
+        "the observation stage")."""
+        value = self.data.get(section)
+        if value is None:
+            raise SceneInputError(self.path, section, f"missing (run {written_by} first: it writes the {section})")
+        return value
+
     def set(self, section: str, value: Any) -> None:
         """Replace one section (``schema`` and ``timings`` have their own methods)."""
         if section in ("schema", "timings"):

@@ -38,7 +38,6 @@ from phirie_jax.construct import inpaint
 from phirie_jax.construct.refine import DiskSet, refine
 from phirie_jax.construct.removal import ObjectInput, load_object, removal_sets
 from phirie_jax.construct.views import CropRenderer, cull, make_crop, pass_bucket
-from phirie_jax.errors import SceneInputError
 from phirie_jax.io.camera import Camera
 from phirie_jax.io.ply import GaussianSplatData, write_gaussian_ply
 from phirie_jax.io.scene import SceneInput, load_scene
@@ -129,10 +128,7 @@ def run_background(scene_dir: str | Path, out_dir: str | Path, config: Backgroun
     out_dir = Path(out_dir)
     config = config or BackgroundConfig()
     manifest = Manifest.load_or_create(out_dir)
-    objects = manifest.get("objects")
-    if objects is None:
-        raise SceneInputError(out_dir / "manifest.json", "objects",
-                              "missing (run the object-construction stage first: it writes the objects)")
+    objects = manifest.require("objects", "the object-construction stage")
     instances = {i["id"]: i for i in manifest.get("instances") or []}
     start = clock_t = time.perf_counter()
     clock = _Clock()

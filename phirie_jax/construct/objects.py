@@ -276,10 +276,7 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
     if strict and not config.strict:
         config = dataclasses.replace(config, strict=True)
     manifest = Manifest.load_or_create(out_dir)
-    instances = manifest.get("instances")
-    if instances is None:
-        raise SceneInputError(out_dir / "manifest.json", "instances",
-                              "missing (run the observation stage first: it writes the instances)")
+    instances = manifest.require("instances", "the observation stage")
     start = time.perf_counter()
     clock = _Clock()
     scene = scene or load_scene(scene_dir, check_images=False)

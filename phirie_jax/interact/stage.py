@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.config import PhysicsConfig, to_dict
-from phirie_jax.errors import SceneInputError
 from phirie_jax.interact import droptest as dt
 from phirie_jax.interact.background import PlacedBody, fit_background
 from phirie_jax.interact.collision import MeshError, collision_from_mesh
@@ -154,9 +153,7 @@ def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manif
     out_dir = Path(out_dir)
     config = config or PhysicsConfig()
     manifest = manifest or Manifest.load_or_create(out_dir)
-    objects = manifest.get("objects")
-    if objects is None:
-        raise SceneInputError(out_dir / "manifest.json", "objects", "missing (run the object and physics stages first)")
+    objects = manifest.require("objects", "the object and physics stages")
     start = time.perf_counter()
     up = _up(manifest)
     entries, bodies = [], []
@@ -192,10 +189,7 @@ def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: Physi
     out_dir = Path(out_dir)
     config = config or PhysicsConfig()
     manifest = Manifest.load_or_create(out_dir)
-    objects = manifest.get("objects")
-    if objects is None:
-        raise SceneInputError(out_dir / "manifest.json", "objects",
-                              "missing (run the object-construction stage first: it writes the objects)")
+    objects = manifest.require("objects", "the object-construction stage")
     start = time.perf_counter()
     up, categories = _up(manifest), _categories(manifest)
     t0 = time.perf_counter()

@@ -4,9 +4,7 @@ it (a dependency of that package), but our modules must not need it."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
+from tests.blocked_imports import run_without
 
 BLOCKED = ("open3d", "coacd", "cv2", "optax", "tyro", "rich", "pybullet", "shapely", "rtree")
 MODULES = ("phirie_jax.interact.droptest", "phirie_jax.interact.mjx_batch", "phirie_jax.interact.cases",
@@ -15,23 +13,12 @@ MODULES = ("phirie_jax.interact.droptest", "phirie_jax.interact.mjx_batch", "phi
 
 
 def test_benchmark_modules_import_without_the_mesh_stack():
-    script = f"""
-import importlib.abc, sys
-class Block(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in {BLOCKED!r}:
-            raise ImportError("blocked in this test: " + name)
-sys.meta_path.insert(0, Block())
-for name in {MODULES!r}:
-    __import__(name)
+    done = run_without(BLOCKED, MODULES, then="""
 import runpy
 sys.argv = ["bench_droptest.py", "--help"]
 try:
     runpy.run_path("experiments/bench_droptest.py", run_name="__main__")
 except SystemExit as e:
     assert e.code == 0, e.code
-print("ok")
-"""
-    root = Path(__file__).resolve().parents[2]
-    done = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True, text=True)
+""")
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
