@@ -23,7 +23,7 @@ For each candidate count (default 1, 64, 256, 1024):
 - ``agreement``: verdicts of MJX and PyBullet against MuJoCo C on the largest set, per kind;
 - ``agreement_hard``: the same on ``--hard`` cases near the protocol's edges (a box or cone
   0.3–1.5° past balance; small boxes toppling off an edge, drifting around the 3 cm threshold);
-- ``solver``: our solver settings (20 iterations, 10 line-search, tol 1e-6) against MuJoCo's
+- ``solver``: our solver settings (``DropTestConfig``: 4 iterations, 4 line-search, tol 1e-6) against MuJoCo's
   defaults (100, 50, 1e-8): C on the largest set, MJX on 64 of its cases (verdicts, drift, time).
 
     python experiments/bench_droptest.py --out experiments/results/bench_droptest_cpu.json
@@ -255,6 +255,7 @@ def main() -> None:
         "platform": device.platform, "host": platform.processor() or platform.machine(),
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": getattr(mjx, "__version__", None),
         "pybullet": pb_status if pb is None else f"{pb_status} (API {pb.getAPIVersion()})",
+        "pybullet_module": None if pb is None else pb.__file__,
         "protocol": {"timestep_s": config.timestep, "settle_steps": config.settle_steps,
                      "free_steps": config.free_steps, "vertex_budget": config.vertex_budget,
                      "solver_iterations": config.solver_iterations,

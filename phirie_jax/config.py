@@ -322,13 +322,22 @@ class DropTestConfig:
         backend: "mjx" (every body of a batch in one vmapped, jitted program), "mujoco" (the C
             library, one body after another; the reference) or "auto": MJX when JAX has an
             accelerator, else the C library. Measured on a 2-core CPU
-            (``experiments/results/bench_droptest_cpu.json``): C 80K steps/s, MJX 27–40K steps/s
-            plus ~20 s of compilation per part bucket, so a CPU uses C.
-        solver_iterations / line_search_iterations / tolerance: ours — MuJoCo's Newton solver
-            settings, the same for both backends. Against MuJoCo's defaults (100, 50, 1e-8)
-            (``experiments/results/bench_droptest_*cpu.json``): MJX ran 1.7× faster on 64 cases
-            with the same verdicts (drifts within 0.06 mm); C gave the same verdicts on 1024
-            cases (stable drifts within 1.2 µm).
+            (``experiments/results/bench_droptest_cpu.json``): C 100K steps/s, MJX 50K steps/s
+            plus ~15 s of compilation per part bucket, so a CPU uses C.
+        solver / jacobian: MuJoCo's constraint solver ("newton" or "cg") and mass-matrix layout
+            ("dense" or "sparse"), the same for both backends. Measured on an H100
+            (``experiments/results/droptest_tuning_h100_solvers.json``): CG takes 2–3× longer for
+            the same verdicts, and the sparse layout (no cuSOLVER calls in MJX) is no faster.
+        solver_iterations / line_search_iterations / tolerance: ours — the Newton solver's limits,
+            the same for both backends. MJX's step is latency-bound on a GPU and each solver
+            iteration adds sequential loop trips, so this is the largest lever there
+            (``experiments/results/droptest_tuning_h100.json``, 1024 candidates): 0.70 s with
+            (4, 4) against 1.06 s with (20, 10). MuJoCo C with (4, 4) gives the same verdicts as
+            with MuJoCo's defaults (100, 50, 1e-8) on all 1024 cases of the benchmark set (drifts
+            within 42 nm median); MJX agrees with C on all of them and on 99.2 % of the hard set.
+            Fewer is not safe in MJX: with 2 iterations 5 of 1024 diverged and 85.5 % of the hard
+            set agreed; its single-iteration path takes a 0/0 line-search step when the warm
+            start is already optimal.
         vertex_budget: vertices of every convex part, padded (static shape; ≤ 64 so MJX collides
             hulls cheaply). Hulls with more vertices are decimated first.
         part_buckets: a body's convex parts are padded to the first bucket that holds them with
@@ -336,6 +345,8 @@ class DropTestConfig:
         min_batch: candidates are padded to a power of two, at least this (static shapes: a
             second batch of the same bucket reuses the compiled program).
         max_batch: larger batches run in chunks of this many (bounded memory).
+        unroll: protocol steps per loop trip of the MJX program (1: on an H100, 4 was no faster
+            and compiled 2.5× slower).
     """
 
     timestep: float = 1.0 / 240.0
@@ -344,13 +355,16 @@ class DropTestConfig:
     max_drift: float = 0.03
     min_final_height: float = -0.05
     backend: str = "auto"
-    solver_iterations: int = 20
-    line_search_iterations: int = 10
+    solver: str = "newton"
+    jacobian: str = "dense"
+    solver_iterations: int = 4
+    line_search_iterations: int = 4
     tolerance: float = 1e-6
     vertex_budget: int = 64
     part_buckets: tuple[int, ...] = (1, 4, 16)
     min_batch: int = 8
     max_batch: int = 4096
+    unroll: int = 1
 
     def __post_init__(self):
         if self.backend not in ("auto", "mjx", "mujoco"):
@@ -359,6 +373,9 @@ class DropTestConfig:
             raise ValueError("drop test: need timestep > 0 and non-negative settle/free times")
         if self.vertex_budget < 4 or not self.part_buckets or sorted(self.part_buckets) != list(self.part_buckets):
             raise ValueError("drop test: need vertex_budget ≥ 4 and increasing part_buckets")
+        if self.solver not in ("newton", "cg") or self.jacobian not in ("dense", "sparse"):
+            raise ValueError(f"drop test solver {self.solver!r} / jacobian {self.jacobian!r} "
+                             "(expected 'newton' or 'cg' / 'dense' or 'sparse')")
 
     @property
     def settle_steps(self) -> int:
@@ -404,6 +421,9 @@ class PhysicsConfig:
         background: "supports" (a box under each support the objects stand on, fitted to the
             scene surface, plus a floor plane) or "plane" (one plane at the lowest support).
         support_thickness: thickness of a support box, below its top face.
+        scene_solver_iterations / scene_line_search_iterations: the Newton solver's limits written
+            to ``scene.xml`` (several objects in contact converge more slowly than one body on a
+            plane, so the scene does not take the drop test's).
         drop_test: the drop test's settings.
     """
 
@@ -427,6 +447,8 @@ class PhysicsConfig:
     workers: int = 0
     background: str = "supports"
     support_thickness: float = 0.04
+    scene_solver_iterations: int = 20
+    scene_line_search_iterations: int = 10
     drop_test: DropTestConfig = DropTestConfig()
 
     def __post_init__(self):

@@ -106,6 +106,8 @@ def build_model(body: DropBody, bucket: int, config: DropTestConfig) -> mujoco.M
     opt.iterations = config.solver_iterations
     opt.ls_iterations = config.line_search_iterations
     opt.tolerance = config.tolerance
+    opt.solver = mujoco.mjtSolver.mjSOL_CG if config.solver == "cg" else mujoco.mjtSolver.mjSOL_NEWTON
+    opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE if config.jacobian == "sparse" else mujoco.mjtJacobian.mjJAC_DENSE
     # the body's priors govern its contact with the plane: MuJoCo takes the larger friction of a
     # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
     spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -162,7 +164,10 @@ def run_reference(model: mujoco.MjModel, qpos0: np.ndarray, config: DropTestConf
 
 
 def _com(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+    """World centre of mass of the free body at ``qpos``; NaN where the state diverged."""
     quat = np.asarray(qpos[3:7], np.float64)
+    if not (np.isfinite(qpos).all() and np.linalg.norm(quat) > 1e-9):
+        return np.full(3, np.nan)
     rot = Rotation.from_quat(quat / np.linalg.norm(quat), scalar_first=True).as_matrix()
     return qpos[:3] + rot @ model.body_ipos[1]
 
@@ -175,7 +180,7 @@ def _tilt_deg(q0: np.ndarray, q1: np.ndarray) -> float:
 
 def verdict(model: mujoco.MjModel, qpos0, settled, final, config: DropTestConfig, backend: str) -> DropResult:
     com0, com_s, com_f = (_com(model, q) for q in (qpos0, settled, final))
-    if not np.isfinite(com_f).all():
+    if not (np.isfinite(com_f).all() and np.isfinite(com_s).all()):
         return DropResult(False, None, None, None, None, backend, "simulation diverged (non-finite state)")
     drift = float(np.linalg.norm(com_f - com0))
     height = float(com_f[2])

@@ -151,7 +151,8 @@ def scene_mjcf(objects: list[SceneObject], background: list[BackgroundGeom], up:
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     ET.SubElement(root, "option", timestep=f"{dt.timestep:.9g}", gravity=_f(-GRAVITY * up),
-                  iterations=str(dt.solver_iterations), ls_iterations=str(dt.line_search_iterations),
+                  iterations=str(config.scene_solver_iterations),
+                  ls_iterations=str(config.scene_line_search_iterations),
                   tolerance=f"{dt.tolerance:g}")
     asset = ET.SubElement(root, "asset")
     world = ET.SubElement(root, "worldbody")

@@ -66,7 +66,7 @@ def _check_compatible(template: mujoco.MjModel, model: mujoco.MjModel) -> None:
         if isinstance(a, np.ndarray) and (a.shape != b.shape or not np.array_equal(a, b)):
             raise ValueError(f"drop-test model field {name!r} differs from the bucket template "
                              "(the batch would simulate the wrong model)")
-    for name in ("timestep", "iterations", "ls_iterations", "tolerance", "integrator", "cone", "solver"):
+    for name in ("timestep", "iterations", "ls_iterations", "tolerance", "integrator", "cone", "solver", "jacobian"):
         if getattr(template.opt, name) != getattr(model.opt, name):
             raise ValueError(f"drop-test option {name!r} differs from the bucket template")
 
@@ -102,28 +102,31 @@ def bind(template: mjx.Model, params: dict) -> mjx.Model:
 
 
 def simulate_one(template: mjx.Model, data0: mjx.Data, params: dict, qpos0: jax.Array,
-                 settle_steps: int, free_steps: int) -> tuple[jax.Array, jax.Array]:
+                 settle_steps: int, free_steps: int, unroll: int = 1) -> tuple[jax.Array, jax.Array]:
     """The drop-test protocol for one candidate: ``settle_steps`` with velocities zeroed after
-    each step, then ``free_steps`` free. Returns qpos (7,) after settling and at the end."""
+    each step, then ``free_steps`` free (``unroll`` steps per loop iteration). Returns qpos (7,)
+    after settling and at the end."""
     TRACES["count"] += 1
     model = bind(template, params)
     data = data0.replace(qpos=qpos0.astype(data0.qpos.dtype))
 
-    def step(carry, i):
-        d, settled = carry
+    def settle(d, _):
         d = mjx.step(model, d)
-        d = d.replace(qvel=jnp.where(i < settle_steps, jnp.zeros_like(d.qvel), d.qvel))
-        settled = jnp.where(i == settle_steps - 1, d.qpos, settled)
-        return (d, settled), None
+        return d.replace(qvel=jnp.zeros_like(d.qvel)), None
 
-    (data, settled), _ = jax.lax.scan(step, (data, data.qpos), jnp.arange(settle_steps + free_steps))
+    def free(d, _):
+        return mjx.step(model, d), None
+
+    data, _ = jax.lax.scan(settle, data, length=settle_steps, unroll=unroll)
+    settled = data.qpos
+    data, _ = jax.lax.scan(free, data, length=free_steps, unroll=unroll)
     return settled, data.qpos
 
 
-@functools.partial(jax.jit, static_argnums=(4, 5))
-def _batched(template, data0, params, qpos0, settle_steps, free_steps):
-    return jax.vmap(simulate_one, in_axes=(None, None, 0, 0, None, None))(
-        template, data0, params, qpos0, settle_steps, free_steps)
+@functools.partial(jax.jit, static_argnums=(4, 5, 6))
+def _batched(template, data0, params, qpos0, settle_steps, free_steps, unroll):
+    return jax.vmap(simulate_one, in_axes=(None, None, 0, 0, None, None, None))(
+        template, data0, params, qpos0, settle_steps, free_steps, unroll)
 
 
 def padded_count(n: int, config: DropTestConfig) -> int:
@@ -137,7 +140,8 @@ def device_args(template: tuple[mjx.Model, mjx.Data], params: dict, qpos0: np.nd
 
 def lower(template: tuple[mjx.Model, mjx.Data], params: dict, qpos0: np.ndarray, config: DropTestConfig):
     """The batch program lowered for these shapes (``.compile()`` it to time compilation alone)."""
-    return _batched.lower(*device_args(template, params, qpos0), config.settle_steps, config.free_steps)
+    return _batched.lower(*device_args(template, params, qpos0), config.settle_steps, config.free_steps,
+                          config.unroll)
 
 
 def run(template_model: mujoco.MjModel, template: tuple[mjx.Model, mjx.Data], models: list[mujoco.MjModel],
@@ -153,7 +157,8 @@ def run(template_model: mujoco.MjModel, template: tuple[mjx.Model, mjx.Data], mo
         idx = np.arange(start, start + chunk)
         idx = np.where(idx < stop, idx, start)    # pad with copies of the chunk's first candidate
         sub = {k: v[idx] for k, v in params.items()}
-        s, f = _batched(*device_args(template, sub, qpos0[idx]), config.settle_steps, config.free_steps)
+        s, f = _batched(*device_args(template, sub, qpos0[idx]), config.settle_steps, config.free_steps,
+                        config.unroll)
         settled.append(np.asarray(s, np.float64)[: stop - start])
         final.append(np.asarray(f, np.float64)[: stop - start])
     return np.concatenate(settled), np.concatenate(final)

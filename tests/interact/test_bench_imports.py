@@ -15,10 +15,11 @@ MODULES = ("phirie_jax.interact.droptest", "phirie_jax.interact.mjx_batch", "phi
 def test_benchmark_modules_import_without_the_mesh_stack():
     done = run_without(BLOCKED, MODULES, then="""
 import runpy
-sys.argv = ["bench_droptest.py", "--help"]
-try:
-    runpy.run_path("experiments/bench_droptest.py", run_name="__main__")
-except SystemExit as e:
-    assert e.code == 0, e.code
+for script in ("bench_droptest.py", "droptest_tuning.py"):
+    sys.argv = [script, "--help"]
+    try:
+        runpy.run_path(f"experiments/{script}", run_name="__main__")
+    except SystemExit as e:
+        assert e.code == 0, (script, e.code)
 """)
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]

@@ -12,7 +12,7 @@ from phirie_jax.config import DropTestConfig, PhysicsConfig
 from phirie_jax.interact import cases
 from phirie_jax.interact.collision import convex_part, hull_part
 from phirie_jax.interact.droptest import (body_from_parts, build_model, drop_test, drop_test_meshes, settling_check,
-                                          spawn_qpos, split_pose)
+                                          spawn_qpos, split_pose, verdict)
 
 TOUCH_TOL = 1e-12     # m, lowest point on the plane at spawn
 GHOST_TOL = 1e-9      # m, ghost parts change no state
@@ -74,6 +74,27 @@ def test_the_reference_agrees_with_statics_on_the_case_set():
     assert not wrong
 
 
+def test_solver_settings_reach_the_model_and_the_verdicts_do_not_depend_on_them():
+    agreement = cases.case_set(10, seed=6)
+    bodies = [body_from_parts((hull_part(c.vertices),), c.pose) for c in agreement]
+    verdicts = {}
+    for solver, jacobian in (("newton", "dense"), ("cg", "sparse")):
+        config = DropTestConfig(solver=solver, jacobian=jacobian, solver_iterations=30)
+        model = build_model(bodies[0], 1, config)
+        assert model.opt.solver == (mujoco.mjtSolver.mjSOL_CG if solver == "cg" else mujoco.mjtSolver.mjSOL_NEWTON)
+        assert model.opt.jacobian == (mujoco.mjtJacobian.mjJAC_SPARSE if jacobian == "sparse"
+                                      else mujoco.mjtJacobian.mjJAC_DENSE)
+        assert model.opt.iterations == 30
+        verdicts[solver] = [r.stable for r in drop_test(bodies, config, backend="mujoco")]
+    assert verdicts["newton"] == verdicts["cg"] == [c.expected_stable for c in agreement]
+
+
+@pytest.mark.parametrize("field", [{"solver": "pgs"}, {"jacobian": "auto"}])
+def test_unknown_solver_settings_are_refused(field):
+    with pytest.raises(ValueError, match="solver"):
+        DropTestConfig(**field)
+
+
 def test_ghost_parts_change_nothing():
     cone = hull_part(trimesh.creation.cone(0.04, 0.15, sections=24).vertices)
     body = body_from_parts((cone,), pose([np.pi + 0.1, 0.0, 0.0]))
@@ -98,6 +119,16 @@ def test_one_bad_candidate_does_not_stop_the_others():
     assert results[0].stable and results[0].error is None
     assert all(r.stable is None and r.error for r in results[1:])
     assert "hull" in results[1].error and "flat" in results[2].error and "pose" in results[3].error
+
+
+@pytest.mark.parametrize("broken", [np.nan, 0.0])
+def test_a_diverged_state_is_unstable_with_a_reason(broken):
+    body = body_from_parts((hull_part(trimesh.creation.box([0.1, 0.1, 0.1]).vertices),), pose())
+    model, qpos0 = build_model(body, 1, DropTestConfig()), spawn_qpos(body)
+    final = qpos0.copy()
+    final[3:7] = broken          # NaN state, or a zero quaternion left by a diverged solver
+    result = verdict(model, qpos0, qpos0, final, DropTestConfig(), "mjx")
+    assert result.stable is False and "diverged" in result.error and result.drift_m is None
 
 
 def test_settling_check_rows():

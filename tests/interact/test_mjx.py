@@ -11,7 +11,9 @@ compiled program instead of tracing again.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from phirie_jax.config import DropTestConfig
 from phirie_jax.interact import cases, mjx_batch
 from phirie_jax.interact.collision import hull_part
 from phirie_jax.interact.droptest import body_from_parts, drop_test
@@ -49,3 +51,17 @@ def test_mjx_matches_mujoco_c_and_a_second_batch_does_not_retrace():
     assert traces >= 1
     compare(cases.case_set(5, seed=12, unstable_fraction=0.4))     # 5 candidates pad to the same 8
     assert mjx_batch.TRACES["count"] == traces
+
+
+@pytest.mark.slow
+def test_unrolled_steps_and_the_sparse_layout_simulate_the_same_states():
+    """Two more programs (≈ 30 s of compiling on 2 cores): the options only change how MJX runs."""
+    import dataclasses
+
+    bodies = bodies_of(cases.case_set(4, seed=13))
+    base = DropTestConfig(settle_time=0.25, free_time=0.25)
+    ref = drop_test(bodies, base, backend="mjx")
+    for variant in (dataclasses.replace(base, unroll=3), dataclasses.replace(base, jacobian="sparse")):
+        for r, f in zip(ref, drop_test(bodies, variant, backend="mjx")):
+            assert f.stable == r.stable
+            assert abs(f.drift_m - r.drift_m) < 1e-5 and abs(f.final_height_m - r.final_height_m) < 1e-5

@@ -90,6 +90,10 @@ def test_mjcf_loads_with_the_masses_inertias_and_placements_of_the_manifest(phys
         np.testing.assert_allclose(data.xpos[b.id], pose[:3, 3], atol=1e-7)
         np.testing.assert_allclose(data.xmat[b.id].reshape(3, 3), pose[:3, :3], atol=1e-7)
     assert model.opt.timestep == pytest.approx(1 / 240) and model.opt.gravity[2] == pytest.approx(-9.81)
+    # the scene's solver limits are its own, not the drop test's (one body on a plane converges faster)
+    assert (model.opt.iterations, model.opt.ls_iterations) == (C_BACKEND.scene_solver_iterations,
+                                                              C_BACKEND.scene_line_search_iterations)
+    assert model.opt.iterations != C_BACKEND.drop_test.solver_iterations
 
 
 def test_urdf_parses_with_the_same_inertial_as_the_mjcf(physics):
