@@ -13,6 +13,8 @@ Gaussians on mesh regions no kept Gaussian covers, coloured from their nearest k
 from __future__ import annotations
 
 import dataclasses
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -157,3 +159,27 @@ def candidate_gaussians(path: Path, candidate_to_canonical: np.ndarray) -> Gauss
 
 def write_visual(path: Path, data: GaussianSplatData) -> None:
     write_gaussian_ply(path, dataclasses.replace(data, extra={}, layout=(), comments=()))
+
+
+# What the stages write in ``objects/<id>/`` (object stage: mesh, visual; physics stage: URDF,
+# collision parts), and the temporary names of interrupted atomic writes of those.
+_OBJECT_FILE = re.compile(r"(mesh\.obj|visual\.ply|object\.urdf|collision/part_\d+\.obj"
+                          r"|(collision/)?\.[\w.]+\.tmp)")
+
+
+def remove_stale_object_folders(out_dir: Path, current_ids: set[int]) -> dict[str, list[str]]:
+    """Remove ``objects/<id>/`` folders a previous run wrote for objects this run has no assets
+    for. A folder holding any file the stages do not write is left alone (someone put it there).
+    Returns {"removed": [...], "kept": [...]} (paths relative to ``out_dir``)."""
+    removed, kept = [], []
+    root = out_dir / "objects"
+    for folder in sorted(root.iterdir()) if root.is_dir() else ():
+        if not (folder.is_dir() and folder.name.isdigit()) or int(folder.name) in current_ids:
+            continue
+        files = [f.relative_to(folder).as_posix() for f in folder.rglob("*") if not f.is_dir()]
+        dirs = [d.relative_to(folder).as_posix() for d in folder.rglob("*") if d.is_dir()]
+        ours = all(_OBJECT_FILE.fullmatch(f) for f in files) and set(dirs) <= {"collision"}
+        if ours:
+            shutil.rmtree(folder)
+        (removed if ours else kept).append(folder.relative_to(out_dir).as_posix())
+    return {"removed": removed, "kept": kept}

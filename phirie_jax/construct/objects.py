@@ -16,6 +16,9 @@ Reads the observation stage's outputs in ``out_dir`` (``manifest.json`` ``instan
 5. assets: ``objects/<id>/mesh.obj`` (canonical) and ``objects/<id>/visual.ply``
    (``construct.assets``).
 
+Folders ``objects/<id>/`` that a previous run into the same ``out_dir`` wrote for objects
+this run has no assets for are removed (only when they hold nothing but the stages' files).
+
 Writes the manifest ``objects`` section (DESIGN.md "Contracts"), a ``construct`` record
 (gravity frame, supports, config) and timings ``objects`` / ``objects.<step>``. A failure
 of one object is recorded (status "failed" with the reason) and the rest go on.
@@ -306,12 +309,13 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
         entry["time_s"] = time.perf_counter() - t_obj
         objects.append(entry)
     objects.sort(key=lambda o: o["id"])
+    stale = assets.remove_stale_object_folders(out_dir, {o["id"] for o in objects if o.get("mesh")})
     manifest.set("objects", objects)
     manifest.set("construct", {
         "gravity": {"up": frame.up, "source": frame.source}, "surface": surface_path,
         "supports": [{"id": r["id"], "height": s.height, "source": s.source, "hits": s.hits}
                      for (r, _, _), s in zip(loaded, supports)],
-        "strict": config.strict, "config": to_dict(config)})
+        "strict": config.strict, "config": to_dict(config), "stale_object_folders": stale})
     for step, seconds in clock.seconds.items():
         manifest.record_timing(step, seconds)
     manifest.record_timing("objects", time.perf_counter() - start)

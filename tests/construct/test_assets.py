@@ -1,4 +1,5 @@
-"""Asset Gaussians: the host transform equals the JAX one; captured selection; fill of unseen regions."""
+"""Asset Gaussians: the host transform equals the JAX one; captured selection; fill of unseen regions;
+stale object folders of an earlier run."""
 
 from __future__ import annotations
 
@@ -63,3 +64,22 @@ def test_captured_selection_and_fill_of_the_unseen_bottom():
     np.testing.assert_allclose(fill.sh[:, 0], np.tile([1.0, -1.0, 0.5], (fill.num, 1)), atol=1e-6)
     both = assets.concat_splats([kept, fill])
     assert both.num == kept.num + fill.num
+
+
+def test_stale_object_folders_go_and_folders_with_foreign_files_stay(tmp_path):
+    def put(rel, text="x"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+
+    put("objects/1/mesh.obj")                                   # this run's object: kept
+    for rel in ("mesh.obj", "visual.ply", "object.urdf", "collision/part_00.obj", "collision/part_13.obj",
+                ".visual.ply.k2j4.tmp"):                         # a previous run's object: removed
+        put(f"objects/2/{rel}")
+    put("objects/3/mesh.obj")
+    put("objects/3/notes.txt")                                   # someone else's file: kept
+    put("objects/extra/mesh.obj")                                # not an object folder: untouched
+    result = assets.remove_stale_object_folders(tmp_path, {1})
+    assert result == {"removed": ["objects/2"], "kept": ["objects/3"]}
+    assert (tmp_path / "objects/1/mesh.obj").exists() and not (tmp_path / "objects/2").exists()
+    assert (tmp_path / "objects/3/notes.txt").exists() and (tmp_path / "objects/extra/mesh.obj").exists()
+    assert assets.remove_stale_object_folders(tmp_path / "nothing_here", set()) == {"removed": [], "kept": []}
