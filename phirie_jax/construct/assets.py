@@ -176,9 +176,8 @@ def remove_stale_object_folders(out_dir: Path, current_ids: set[int]) -> dict[st
     for folder in sorted(root.iterdir()) if root.is_dir() else ():
         if not (folder.is_dir() and folder.name.isdigit()) or int(folder.name) in current_ids:
             continue
-        files = [f.relative_to(folder).as_posix() for f in folder.rglob("*") if not f.is_dir()]
-        dirs = [d.relative_to(folder).as_posix() for d in folder.rglob("*") if d.is_dir()]
-        ours = all(_OBJECT_FILE.fullmatch(f) for f in files) and set(dirs) <= {"collision"}
+        entries = [(e.relative_to(folder).as_posix(), e.is_dir()) for e in folder.rglob("*")]
+        ours = all(name == "collision" if is_dir else _OBJECT_FILE.fullmatch(name) for name, is_dir in entries)
         if ours:
             shutil.rmtree(folder)
         (removed if ours else kept).append(folder.relative_to(out_dir).as_posix())
