@@ -64,9 +64,10 @@ def _scene(root: Path, seed: int) -> Path:
 
 
 def _objects(scene_dir: Path, out: Path) -> dict:
-    from phirie_jax.config import ObjectsConfig, ObserveConfig
-    from phirie_jax.construct import run_objects
-    from phirie_jax.observe import run_observe
+    from phirie_jax.construct.objects.config import ObjectsConfig
+    from phirie_jax.construct.objects.stage import run_objects
+    from phirie_jax.observe.stage import run_observe
+    from phirie_jax.observe.config import ObserveConfig
 
     manifest = out / "manifest.json"
     if manifest.exists() and "objects" in json.loads(manifest.read_text()):
@@ -77,8 +78,8 @@ def _objects(scene_dir: Path, out: Path) -> dict:
 
 def held_out_cameras(scene_cameras, seed: int):
     """Cameras on rings between and above the capture's, looking at the table."""
-    from phirie_jax.io.camera import Camera
     from phirie_jax.synthetic.scene import look_at
+    from phirie_jax.types import Camera
 
     ref = scene_cameras[0]
     rng = np.random.default_rng(seed + 99)
@@ -133,9 +134,9 @@ def _hole(full_out, kept_out, disk_out, config) -> np.ndarray:
 
 
 def evaluate_seed(seed: int, scene_root: Path, work: Path) -> dict:
-    from phirie_jax.config import BackgroundConfig
-    from phirie_jax.construct.background import run_background
-    from phirie_jax.construct.inpaint import inpaint
+    from phirie_jax.construct.background.config import BackgroundConfig
+    from phirie_jax.construct.background.stage import run_background
+    from phirie_jax.construct.background.targets import inpaint
     from phirie_jax.io.ply import read_gaussian_ply
     from phirie_jax.synthetic.scene import PRESETS
 

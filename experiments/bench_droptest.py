@@ -2,7 +2,7 @@
 
 Needs only jax, mujoco, mujoco-mjx, numpy and scipy; PyBullet is optional (without it the
 PyBullet rows say "unavailable" and why). The candidates are the procedural agreement cases
-(``phirie_jax.interact.cases``: half stable, half unstable — cones on their tips, boxes
+(``tests.fixtures.droptest_cases``: half stable, half unstable — cones on their tips, boxes
 balanced on an edge, thin plates on their edge, tipped tall cylinders), one convex hull each,
 the stand-in used while ranking candidates.
 
@@ -48,11 +48,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from phirie_jax.config import DropTestConfig  # noqa: E402
-from phirie_jax.interact import cases, mjx_batch  # noqa: E402
-from phirie_jax.interact.collision import hull_part  # noqa: E402
-from phirie_jax.interact.droptest import (DropBody, body_from_parts, bucket_template, build_model,  # noqa: E402
-                                          run_reference, spawn_qpos, verdict)
+from phirie_jax.construct.physics import mjx_batch  # noqa: E402
+from phirie_jax.construct.physics.collision import hull_part  # noqa: E402
+from phirie_jax.construct.physics.config import DropTestConfig  # noqa: E402
+from phirie_jax.construct.physics.droptest import (
+    DropBody,
+    body_from_parts,
+    bucket_template,
+    build_model,
+    run_reference,
+    spawn_qpos,
+    verdict,
+)
+from tests.fixtures import droptest_cases as cases  # noqa: E402
 
 TARGET_GPU_RATIO = 50.0   # issue 6: MJX on a GPU ≥ 50× the sequential PyBullet loop at 1024 candidates
 

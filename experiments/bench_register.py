@@ -41,8 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from kernels.chamfer import build_grid, nearest_grid, nearest_sq  # noqa: E402
-from kernels.registration import (UP_AXES, SearchSpec, axis_rotation, hypothesis_energy, icp,  # noqa: E402
-                                  place, register, yaw_matrix)
+from kernels.registration import UP_AXES, SearchSpec, axis_rotation, hypothesis_energy, icp, place, register, yaw_matrix  # noqa: E402
 
 TAU = 0.03
 MAX_CORR = 0.06

@@ -31,8 +31,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from kernels.gaussians import Gaussians  # noqa: E402
 from kernels.composite import TileGrid  # noqa: E402
+from kernels.gaussians import Gaussians  # noqa: E402
 from kernels.project import project_gaussians  # noqa: E402
 from kernels.raster import RasterConfig, bin_gaussians, rasterize  # noqa: E402
 from kernels.sh import rgb_to_sh_dc  # noqa: E402

@@ -19,8 +19,8 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from phirie_jax.config import PhysicsConfig  # noqa: E402
-from phirie_jax.interact.collision import collision_from_mesh  # noqa: E402
+from phirie_jax.construct.physics.collision import collision_from_mesh  # noqa: E402
+from phirie_jax.construct.physics.config import PhysicsConfig  # noqa: E402
 from phirie_jax.synthetic import shapes  # noqa: E402
 
 

@@ -37,10 +37,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from phirie_jax.config import DropTestConfig  # noqa: E402
-from phirie_jax.interact import cases  # noqa: E402
-from phirie_jax.interact.collision import hull_part  # noqa: E402
-from phirie_jax.interact.droptest import body_from_parts, build_model, run_reference, spawn_qpos, verdict  # noqa: E402
+from phirie_jax.construct.physics.collision import hull_part  # noqa: E402
+from phirie_jax.construct.physics.config import DropTestConfig  # noqa: E402
+from phirie_jax.construct.physics.droptest import body_from_parts, build_model, run_reference, spawn_qpos, verdict  # noqa: E402
+from tests.fixtures import droptest_cases as cases  # noqa: E402
 
 DEFAULT_SOLVER = "newton:100,50:dense:1e-8"   # MuJoCo's own solver settings
 

@@ -48,7 +48,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from phirie_jax.config import ObjectsConfig, ObserveConfig  # noqa: E402
+from phirie_jax.construct.objects.config import ObjectsConfig  # noqa: E402
+from phirie_jax.observe.config import ObserveConfig  # noqa: E402
 
 DEV_SEEDS = (100,)
 POOL = ("external:gen_a", "external:gen_b", "visual_hull", "extrude", "primitive")
@@ -253,7 +254,7 @@ class Metrics:
 
 
 def observe(scene_dir: Path, out: Path) -> dict:
-    from phirie_jax.observe import run_observe
+    from phirie_jax.observe.stage import run_observe
 
     if (out / "manifest.json").exists():
         return json.loads((out / "manifest.json").read_text())
@@ -263,7 +264,7 @@ def observe(scene_dir: Path, out: Path) -> dict:
 def warm_up(observed: list[tuple[Path, Path]], configs: list[ObjectsConfig]) -> float:
     """Compile every program the timed runs need (Q buckets × search shapes, scoring, carving)
     by running each configuration once on copies; → seconds spent."""
-    from phirie_jax.construct import run_objects
+    from phirie_jax.construct.objects.stage import run_objects
 
     start = time.perf_counter()
     for scene_dir, obs_out in observed:
@@ -280,8 +281,8 @@ def run_row(scene_dir: Path, obs_out: Path, config: ObjectsConfig, out: Path, me
             truth: dict) -> dict:
     import trimesh
 
-    from phirie_jax.construct import run_objects
-    from phirie_jax.construct import register as reg
+    from phirie_jax.construct.objects import register as reg
+    from phirie_jax.construct.objects.stage import run_objects
 
     shutil.rmtree(out, ignore_errors=True)
     shutil.copytree(obs_out, out)

@@ -69,7 +69,7 @@ def _surface_error(vertices, gt_surface, rng) -> dict:
 
 def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
     from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe import run_observe
+    from phirie_jax.observe.stage import run_observe
     from phirie_jax.observe.evaluate import evaluate
 
     scene = load_scene(scene_dir, surface=surface_path)
@@ -87,9 +87,9 @@ def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
 def evaluate_scene(scene_dir: Path, work: Path) -> dict:
     import trimesh
 
-    from phirie_jax.config import ObserveConfig
     from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe.pipeline import render_depths
+    from phirie_jax.observe.config import ObserveConfig
+    from phirie_jax.observe.stage import render_depths
     from phirie_jax.observe.surface import snap_to_centres
 
     rows = {}

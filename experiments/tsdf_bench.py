@@ -24,9 +24,9 @@ import numpy as np
 
 
 def make(scene_dir: Path, out: Path) -> None:
-    from phirie_jax.config import ObserveConfig
     from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe.pipeline import render_depths
+    from phirie_jax.observe.config import ObserveConfig
+    from phirie_jax.observe.stage import render_depths
     from phirie_jax.observe.surface import active_blocks, bucket
 
     config = ObserveConfig().surface

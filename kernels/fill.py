@@ -1,11 +1,11 @@
 """Plane-disk fill: new flat Gaussians on a support plane, refined against image targets.
 
-The background branch (``phirie_jax.construct.background``) removes an object's Gaussians
+The background branch (``phirie_jax.construct.background.stage``) removes an object's Gaussians
 and lays new disks on a grid over the exposed part of the support plane. This kernel fits
 those disks — and only them — to inpainted target crops with the splat renderer.
 
 One target *frame* is a crop of one camera. The kept scene is split there, once on the
-host (``phirie_jax.construct.inpaint.split_layers``), into three layers:
+host (``phirie_jax.construct.background.targets.split_layers``), into three layers:
 
     front  kept Gaussians in front of the disks: premultiplied colour F, transmittance T_F
     slab   kept Gaussians on the disks' plane (they interleave with the disks in depth): rendered

@@ -29,12 +29,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from kernels.composite import (
-    TileGrid,
-    TileLists,
-    composite,
-    composite_scan,
-)
+from kernels.composite import TileGrid, TileLists, composite, composite_scan
 from kernels.gaussians import Gaussians
 from kernels.project import NEAR_PLANE, Projected, project_gaussians
 from kernels.pytree import pytree_dataclass, static_field

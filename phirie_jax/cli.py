@@ -14,9 +14,10 @@ from typing import Annotated, Literal
 
 import tyro
 
-from phirie_jax.config import ObserveConfig, PhysicsConfig
-from phirie_jax.convert import ConvertConfig
+from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import SceneInputError
+from phirie_jax.observe.config import ObserveConfig
+from phirie_jax.pipeline import ConvertConfig
 
 Scene = Annotated[Path, tyro.conf.Positional]
 
@@ -159,7 +160,7 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         config: observation parameters (defaults: the paper's numbers).
     """
     from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe import run_observe
+    from phirie_jax.observe.stage import run_observe
 
     loaded = load_scene(scene, gaussians=gaussians, surface=surface)
     manifest = run_observe(scene, out, config, masks=masks, scene=loaded)
@@ -185,7 +186,7 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     """
     from rich.console import Console
 
-    from phirie_jax.convert import run_convert
+    from phirie_jax.pipeline import run_convert
 
     console = Console()
     with console.status("converting") as status:
@@ -244,7 +245,7 @@ def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig =
         out: a `phirie convert` output folder.
         config: physics and drop-test parameters.
     """
-    from phirie_jax.interact.stage import run_droptest
+    from phirie_jax.construct.physics.stage import run_droptest
 
     _print_objects(run_droptest(out, config))
 

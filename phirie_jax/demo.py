@@ -83,9 +83,9 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     from rich.console import Console
     from rich.table import Table
 
-    from phirie_jax.convert import run_convert
     from phirie_jax.interact.environment import Environment
     from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
+    from phirie_jax.pipeline import run_convert
     from phirie_jax.render import render
     from phirie_jax.synthetic import synthesize
     from phirie_jax.synthetic.truth import background_truth

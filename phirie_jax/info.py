@@ -9,7 +9,7 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import ply_element_counts
-from phirie_jax.io.scene import SceneInput
+from phirie_jax.types import SceneInput
 
 
 def _relative(path: Path | None, root: Path) -> str | None:

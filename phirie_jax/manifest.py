@@ -14,6 +14,7 @@ record), add items to a list section by id, record a stage's time, write atomica
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import time
@@ -116,3 +117,8 @@ class Manifest:
         ordered = {"schema": SCHEMA, **{k: v for k, v in self.data.items() if k != "schema"}}
         write_text(self.path, json.dumps(ordered, indent=2, allow_nan=False) + "\n")
         return self.path
+
+
+def to_dict(config) -> dict:
+    """A config as plain JSON-ready values (nested configs included)."""
+    return dataclasses.asdict(config)

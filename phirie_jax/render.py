@@ -29,7 +29,7 @@ import numpy as np
 from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig, RasterOutput, rasterize
 from kernels.raster import render_batch as _kernel_render_batch
-from phirie_jax.io.camera import Camera
+from phirie_jax.types import Camera
 
 MIN_GAUSSIAN_BUCKET = 256
 PAD_OPACITY_LOGIT = -1e4   # sigmoid → 0: culled by the projection (opacity < 1/255)

@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig, rasterize
 from phirie_jax import render as render_mod
-from phirie_jax.io.camera import Camera, intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.render import Renderer, gaussian_bucket, pad_gaussians
+from phirie_jax.types import Camera
 from tests.conftest import shared_data
 
 SAME_TOL = 1e-5  # the same computation compiled into two programs (float32 rounding)

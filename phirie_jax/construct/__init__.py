@@ -1,6 +1,7 @@
-"""Coupled Scene Construction, object branch: candidates → registration → checks →
-selection → assets (``run_objects``)."""
+"""Coupled Scene Construction: the object branch and the background branch share one object
+identity (the instance id).
 
-from phirie_jax.construct.objects import run_objects
-
-__all__ = ["run_objects"]
+objects/     candidates → batched Sim(3) registration → checks → selection → assets
+physics/     collision parts, physics priors, MuJoCo bodies, MJCF/URDF, drop tests
+background/  removal of the objects' Gaussians → inpainting targets → plane-disk fill
+"""

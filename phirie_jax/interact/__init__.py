@@ -1,11 +1,7 @@
-"""Interactive environment. Simulator assets and drop tests (issue 6):
+"""The interactive environment (runtime only).
 
-collision   mesh repair, CoACD convex decomposition, hull decimation (MeshError for bad meshes)
-physics     priors (mass, friction, restitution → solref) and uniform-density mass properties
-export      collision part OBJs, object.urdf, scene.xml (MJCF), a free settle of the scene
-background  support geoms (floor plane, tabletop boxes) fitted from the scene surface
-droptest    the paper's drop-test protocol; MuJoCo C reference; the construction stage's hook
-mjx_batch   every drop test of a bucket in one vmapped, jitted MJX program
-cases       procedural shapes and poses with known verdicts (tests, benchmark)
-stage       run_physics (the stage) and run_droptest (re-run on an exported folder)
+environment  Environment: MuJoCo C moves the bodies, their Gaussians follow, one rasterization
+batched      BatchedEnvironment: many MJX worlds stepped and rendered in one call
+mjx_model    the batched worlds' collision model (one convex hull per object)
+rollout      shoot-and-render rollouts written to MP4
 """

@@ -21,7 +21,7 @@ import numpy as np
 from kernels.gaussians import quat_to_rotmat
 from phirie_jax.interact.environment import Environment, compose_scene, load_spec
 from phirie_jax.interact.mjx_model import CollisionModel, hull_collision_spec, multi_part
-from phirie_jax.io.camera import Camera
+from phirie_jax.types import Camera
 
 
 @functools.partial(jax.jit, static_argnames=("steps",))

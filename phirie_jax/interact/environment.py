@@ -27,9 +27,9 @@ import numpy as np
 
 from kernels.gaussians import Gaussians, Sim3, concatenate, transform_bodies
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera
-from phirie_jax.io.ply import GaussianSplatData, read_gaussian_ply
+from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.transforms_json import read_transforms_json
+from phirie_jax.types import Camera, GaussianSplatData
 
 SCENE_FILE = "scene.xml"
 BACKGROUND_FILE = "background.ply"

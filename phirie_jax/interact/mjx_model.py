@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from phirie_jax.interact.collision import hull_part
+from phirie_jax.construct.physics.collision import hull_part
 
 CollisionModel = Literal["parts", "hull"]
 HULL_SUFFIX = "_hull"

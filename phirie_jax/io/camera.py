@@ -9,64 +9,18 @@ and reported; the renderer itself is pinhole.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
+from phirie_jax.types import Camera
 
 # Pose matrices in text files are often printed with ~7 digits; farther from a
 # rotation than this is a scaled or sheared matrix, not a camera pose.
 RIGID_TOLERANCE = 1e-3
 # Below this the rotation is already orthonormal to float precision and kept bit for bit.
 _ORTHONORMAL_EXACT = 1e-12
-
-
-@dataclasses.dataclass(frozen=True)
-class Camera:
-    name: str                       # image file name, relative to the image folder
-    K: np.ndarray                   # (3, 3) float64 pinhole intrinsics
-    world_to_camera: np.ndarray     # (4, 4) float64 rigid transform, OpenCV axes
-    width: int
-    height: int
-    model: str = "PINHOLE"          # source camera model name (COLMAP spelling)
-    distortion: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # (D,)
-    image_path: Path | None = None  # absolute path of the image, when known
-
-    @property
-    def is_distorted(self) -> bool:
-        return bool(np.any(self.distortion != 0.0))
-
-    @property
-    def camera_to_world(self) -> np.ndarray:
-        """(4, 4) inverse of ``world_to_camera`` (rigid, so Rᵀ and −Rᵀt)."""
-        rot = self.world_to_camera[:3, :3]
-        out = np.eye(4)
-        out[:3, :3] = rot.T
-        out[:3, 3] = -rot.T @ self.world_to_camera[:3, 3]
-        return out
-
-    @property
-    def center(self) -> np.ndarray:
-        """(3,) camera centre in world coordinates."""
-        return self.camera_to_world[:3, 3]
-
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pinhole projection of world points (N, 3) → pixel coords (N, 2), depth (N,)."""
-        cam = points @ self.world_to_camera[:3, :3].T + self.world_to_camera[:3, 3]
-        depth = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = (cam @ self.K.T)[:, :2] / depth[:, None]
-        return uv, depth
-
-    def scaled(self, factor: float) -> "Camera":
-        """The same camera for an image resized by ``factor`` (pixel-centre convention kept)."""
-        K = self.K.copy()
-        K[:2] *= factor
-        return dataclasses.replace(
-            self, K=K, width=int(round(self.width * factor)), height=int(round(self.height * factor))
-        )
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

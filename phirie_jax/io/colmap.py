@@ -22,7 +22,8 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_files
-from phirie_jax.io.camera import Camera, intrinsics_matrix, sort_by_name
+from phirie_jax.io.camera import intrinsics_matrix, sort_by_name
+from phirie_jax.types import Camera
 
 SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 # COLMAP's model ids (src/colmap/sensor/models.h); only the first five are read.

@@ -17,6 +17,7 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import atomic_write
+from phirie_jax.types import GaussianSplatData
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -40,71 +41,6 @@ REQUIRED = {
     "log_scales": _group("scale_", 3),
     "quats": _group("rot_", 4),
 }
-
-
-@dataclasses.dataclass(frozen=True)
-class GaussianSplatData:
-    """Host-side Gaussian set as stored in a 3DGS PLY (NumPy arrays)."""
-
-    means: np.ndarray           # (N, 3)
-    quats: np.ndarray           # (N, 4) wxyz as stored (not normalized)
-    log_scales: np.ndarray      # (N, 3)
-    opacity_logits: np.ndarray  # (N,)
-    sh: np.ndarray              # (N, K, 3), K = (degree + 1)²
-    extra: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # name → (N,)
-    layout: tuple[tuple[str, str], ...] = ()  # file property order and type tokens
-    comments: tuple[str, ...] = ()
-
-    @property
-    def num(self) -> int:
-        return self.means.shape[0]
-
-    @property
-    def sh_degree(self) -> int:
-        return int(round(np.sqrt(self.sh.shape[1]))) - 1
-
-    def bounds(self) -> np.ndarray:
-        """(2, 3) axis-aligned min and max of the means."""
-        return np.stack([self.means.min(0), self.means.max(0)]) if self.num else np.zeros((2, 3))
-
-    def to_kernel(self, dtype=None):
-        """The same set as a ``kernels.gaussians.Gaussians`` of JAX arrays (float32 by default)."""
-        import jax.numpy as jnp
-
-        from kernels.gaussians import Gaussians
-
-        dtype = dtype or jnp.float32
-        return Gaussians(
-            means=jnp.asarray(self.means, dtype),
-            quats=jnp.asarray(self.quats, dtype),
-            log_scales=jnp.asarray(self.log_scales, dtype),
-            opacity_logits=jnp.asarray(self.opacity_logits, dtype),
-            sh=jnp.asarray(self.sh, dtype),
-        )
-
-    @staticmethod
-    def from_kernel(gaussians, extra: dict[str, np.ndarray] | None = None) -> "GaussianSplatData":
-        """Host copy (float32) of a ``kernels.gaussians.Gaussians``."""
-        return GaussianSplatData(
-            means=np.asarray(gaussians.means, np.float32),
-            quats=np.asarray(gaussians.quats, np.float32),
-            log_scales=np.asarray(gaussians.log_scales, np.float32),
-            opacity_logits=np.asarray(gaussians.opacity_logits, np.float32),
-            sh=np.asarray(gaussians.sh, np.float32),
-            extra=dict(extra or {}),
-        )
-
-    def subset(self, index: np.ndarray) -> "GaussianSplatData":
-        """The Gaussians selected by ``index`` (boolean mask or integer indices), extras included."""
-        return dataclasses.replace(
-            self,
-            means=self.means[index],
-            quats=self.quats[index],
-            log_scales=self.log_scales[index],
-            opacity_logits=self.opacity_logits[index],
-            sh=self.sh[index],
-            extra={k: v[index] for k, v in self.extra.items()},
-        )
 
 
 def default_layout(sh_degree: int, extra: dict[str, np.ndarray] | None = None) -> tuple:

@@ -18,77 +18,22 @@ beside it (any PLY whose header carries 3DGS fields, paired by name prefix).
 
 from __future__ import annotations
 
-import dataclasses
 import re
 from pathlib import Path
 
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera
 from phirie_jax.io.colmap import read_colmap_model
 from phirie_jax.io.images import image_size
-from phirie_jax.io.ply import GaussianSplatData, is_gaussian_ply, read_gaussian_ply
+from phirie_jax.io.ply import is_gaussian_ply, read_gaussian_ply
 from phirie_jax.io.transforms_json import read_transforms_json
+from phirie_jax.types import GAUSSIAN_NAMES, Camera, CandidateFiles, SceneInput
 
-GAUSSIAN_NAMES = ("point_cloud.ply", "splat.ply")
 SURFACE_NAMES = ("surface.ply", "surface.obj", "mesh.ply", "mesh.obj")
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply")
 SCANNETPP_MESH = Path("scans/mesh_aligned_0.05.ply")
 SCANNETPP_SEGMENTS = Path("scans/segments_anno.json")
-
-
-@dataclasses.dataclass(frozen=True)
-class CandidateFiles:
-    """One externally generated candidate for an instance: a mesh and optional Gaussians."""
-
-    instance_id: int
-    name: str
-    mesh: Path
-    gaussians: Path | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneInput:
-    """Everything a scene folder provides. Paths are absolute; arrays are NumPy."""
-
-    root: Path
-    layout: str                                  # "colmap" | "nerfstudio" | "scannetpp" | "gaussians"
-    gaussians: GaussianSplatData | None
-    gaussians_path: Path | None
-    cameras: tuple[Camera, ...] = ()             # camera k = k-th image in name order
-    camera_source: Path | None = None
-    sparse_points: np.ndarray | None = None      # (P, 3) COLMAP points, when present
-    surface_mesh: Path | None = None
-    masks: tuple[Path | None, ...] | None = None  # aligned with ``cameras``
-    candidates: dict[int, tuple[CandidateFiles, ...]] = dataclasses.field(default_factory=dict)
-    segments_anno: Path | None = None
-
-    @property
-    def image_paths(self) -> tuple[Path | None, ...]:
-        return tuple(c.image_path for c in self.cameras)
-
-    def require_gaussians(self) -> GaussianSplatData:
-        if self.gaussians is None:
-            raise SceneInputError(self.root, "gaussians",
-                                  f"no Gaussian PLY found (expected --gaussians PATH, "
-                                  f"{' or '.join(GAUSSIAN_NAMES)}, or point_cloud/iteration_*/point_cloud.ply)")
-        return self.gaussians
-
-    def require_cameras(self) -> tuple[Camera, ...]:
-        if not self.cameras:
-            raise SceneInputError(self.root, "cameras",
-                                  "none found (expected sparse/0/, sparse/, transforms.json or dslr/)")
-        return self.cameras
-
-    def bounds(self) -> np.ndarray | None:
-        """(2, 3) scene bounds: Gaussian means, else COLMAP points, else camera centres."""
-        if self.gaussians is not None and self.gaussians.num:
-            return self.gaussians.bounds()
-        for pts in (self.sparse_points, np.array([c.center for c in self.cameras]).reshape(-1, 3)):
-            if pts is not None and len(pts):
-                return np.stack([pts.min(0), pts.max(0)])
-        return None
 
 
 def find_gaussians(root: Path) -> Path | None:

@@ -23,9 +23,10 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import RIGID_TOLERANCE, Camera, intrinsics_matrix, rigid, sort_by_name
 from phirie_jax.io.atomic import write_files
+from phirie_jax.io.camera import RIGID_TOLERANCE, intrinsics_matrix, rigid, sort_by_name
 from phirie_jax.io.images import image_size
+from phirie_jax.types import Camera
 
 SUPPORTED_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z (either way)

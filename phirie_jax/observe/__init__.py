@@ -1,9 +1,12 @@
 """Scene Observation: per-view masks → first-hit lifting onto the surface → voxel association.
 
-``run_observe`` is the stage; the modules are its steps (``surface``, ``masks``, ``auto``,
-``lift``, ``associate``) and ``evaluate`` scores instances against ground truth.
+stage      run_observe: the stage driver
+config     ObserveConfig (with SurfaceConfig, AutoMaskConfig)
+surface    the scene surface: a scan mesh, or TSDF fusion of rendered depths
+masks      mask files, or labels rendered from candidate Gaussians
+auto       automatic instance discovery on the splat-derived surface
+raycast    first-hit ray casting against a mesh
+lift       per-view masks → surface points
+associate  voxel association of lifted points across views → instances
+evaluate   instances scored against synthetic ground truth
 """
-
-from phirie_jax.observe.pipeline import run_observe
-
-__all__ = ["run_observe"]

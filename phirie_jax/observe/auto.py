@@ -26,11 +26,11 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from phirie_jax.config import AutoMaskConfig
-from phirie_jax.io.camera import Camera
+from phirie_jax.observe.config import AutoMaskConfig
 from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, camera_problem
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.observe.surface import pack_keys
+from phirie_jax.types import Camera
 
 RANSAC_CHUNK = 16  # hypotheses scored per vectorized step
 

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.io.camera import Camera
 from phirie_jax.observe.associate import voxel_keys
 from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.types import Camera
 
 EVAL_VOXEL = 0.01       # occupancy grid of the IoU
 IOU_THRESHOLD = 0.5

@@ -12,10 +12,10 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
-from phirie_jax.config import ObserveConfig
-from phirie_jax.io.camera import Camera
+from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.masks import ViewMasks
 from phirie_jax.observe.raycast import Raycaster, pixel_grid, pixel_rays
+from phirie_jax.types import Camera
 
 
 @dataclasses.dataclass(frozen=True)

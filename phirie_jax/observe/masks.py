@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera
+from phirie_jax.types import Camera
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 
-from phirie_jax.io.camera import Camera
+from phirie_jax.types import Camera
 
 
 @dataclasses.dataclass(frozen=True)

@@ -24,8 +24,8 @@ import time
 
 import numpy as np
 
-from phirie_jax.config import SurfaceConfig
-from phirie_jax.io.camera import Camera
+from phirie_jax.observe.config import SurfaceConfig
+from phirie_jax.types import Camera
 
 MIN_BLOCK_BUCKET = 64   # smallest padded block count (powers of two above it)
 _KEY_OFFSET = 1 << 20   # voxel/block integer coordinates are packed into 21-bit fields

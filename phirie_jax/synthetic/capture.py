@@ -14,8 +14,8 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.io.ply import GaussianSplatData
 from phirie_jax.synthetic.shapes import ColourFn
+from phirie_jax.types import GaussianSplatData
 
 DISK_THICKNESS = 0.12   # short axis / long axis of a surface disk
 DISK_RADIUS = 0.9       # long-axis σ as a fraction of the sample spacing

@@ -24,17 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.io.atomic import write_bytes, write_text
-from phirie_jax.io.camera import Camera, intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.colmap import write_colmap_text
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.transforms_json import write_transforms_json
 from phirie_jax.synthetic import shapes
-from phirie_jax.synthetic.capture import (
-    LabelledGaussians,
-    blob_gaussians,
-    sample_surface,
-    surface_gaussians,
-)
+from phirie_jax.synthetic.capture import LabelledGaussians, blob_gaussians, sample_surface, surface_gaussians
+from phirie_jax.types import Camera
 
 MASK_COVERAGE = 0.5     # a mask pixel needs this much of one instance's rendered weight
 SPARSE_POINTS = 20_000  # COLMAP points3D written beside the cameras

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.io.ply import GaussianSplatData, read_gaussian_ply
+from phirie_jax.io.ply import read_gaussian_ply
+from phirie_jax.types import GaussianSplatData
 
 SAME_GAUSSIAN = 1e-6  # m: a capture Gaussian is a ground-truth one when their centres are this close
 REGION_WEIGHT = 0.01  # a pixel is uncovered where the capture's object Gaussians carried this much weight
@@ -26,7 +27,7 @@ def background_truth(scene_dir: str | Path) -> BackgroundTruth:
     """The truth of a ``phirie synth`` folder (it needs ``gt/background.ply`` and ``gt/labels.npy``)."""
     from scipy.spatial import cKDTree
 
-    from phirie_jax.construct.background import concat
+    from phirie_jax.construct.background.stage import concat
 
     scene_dir = Path(scene_dir)
     capture = read_gaussian_ply(scene_dir / "point_cloud.ply")

@@ -7,8 +7,9 @@ from __future__ import annotations
 from tests.blocked_imports import run_without
 
 BLOCKED = ("open3d", "coacd", "cv2", "optax", "tyro", "rich", "pybullet", "shapely", "rtree")
-MODULES = ("phirie_jax.interact.droptest", "phirie_jax.interact.mjx_batch", "phirie_jax.interact.cases",
-           "phirie_jax.interact.collision", "phirie_jax.interact.physics", "phirie_jax.config",
+MODULES = ("phirie_jax.construct.physics.droptest", "phirie_jax.construct.physics.mjx_batch",
+           "phirie_jax.construct.physics.collision", "phirie_jax.construct.physics.priors",
+           "phirie_jax.construct.physics.config", "tests.fixtures.droptest_cases",
            "phirie_jax.interact.environment", "phirie_jax.interact.batched", "phirie_jax.interact.mjx_model")
 
 

@@ -11,10 +11,10 @@ from scipy.spatial.transform import Rotation
 
 from kernels.gaussians import Sim3, concatenate, transform_gaussians
 from phirie_jax.interact.environment import Environment
-from phirie_jax.io.camera import Camera, intrinsics_matrix
-from phirie_jax.io.ply import GaussianSplatData
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.render import render
 from phirie_jax.synthetic.scene import look_at
+from phirie_jax.types import Camera, GaussianSplatData
 
 IMAGE_TOL = 2e-4        # float32 rasterization of identically placed Gaussians
 CENTROID_TOL = 0.01     # the 1 cm

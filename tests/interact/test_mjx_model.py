@@ -10,7 +10,7 @@ import pytest
 
 from phirie_jax.interact.environment import Environment, load_spec
 from phirie_jax.interact.mjx_model import HULL_SUFFIX, body_frame_vertices, hull_collision_spec, multi_part
-from phirie_jax.io.ply import GaussianSplatData
+from phirie_jax.types import GaussianSplatData
 
 SETTLE_AGREEMENT = 1e-3  # m: the hull and the parts rest the same where the bottom is convex
 

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera, intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.colmap import (
     MODEL_NAMES,
     SUPPORTED_MODELS,
@@ -24,6 +24,7 @@ from phirie_jax.io.colmap import (
     write_colmap_text,
 )
 from phirie_jax.io.transforms_json import read_transforms_json, write_transforms_json
+from phirie_jax.types import Camera
 
 POSE_TOL = 1e-12
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"

@@ -7,12 +7,8 @@ import pytest
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import atomic_write
-from phirie_jax.io.ply import (
-    GaussianSplatData,
-    is_gaussian_ply,
-    read_gaussian_ply,
-    write_gaussian_ply,
-)
+from phirie_jax.io.ply import is_gaussian_ply, read_gaussian_ply, write_gaussian_ply
+from phirie_jax.types import GaussianSplatData
 from tests.conftest import shared_data
 
 DONUT_COUNT = 45_624

@@ -12,11 +12,12 @@ import pytest
 
 from phirie_jax.cli import main
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera, intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.colmap import write_colmap_binary, write_colmap_text
-from phirie_jax.io.ply import GaussianSplatData, write_gaussian_ply
+from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.scene import load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
+from phirie_jax.types import Camera, GaussianSplatData
 from tests.conftest import shared_data
 
 WIDTH, HEIGHT = 32, 24

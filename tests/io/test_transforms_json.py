@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import Camera, intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.colmap import read_colmap_model
 from phirie_jax.io.transforms_json import read_transforms_json, write_transforms_json
+from phirie_jax.types import Camera
 
 POSE_TOL = 1e-12
 IDENTITY_AT_Z5 = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5], [0, 0, 0, 1]]

@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from kernels.chamfer import (FAR, build_grid, clipped_chamfer, clipped_distance, nearest_grid, nearest_point,
-                             nearest_sq, within_fraction)
+from kernels.chamfer import (
+    FAR,
+    build_grid,
+    clipped_chamfer,
+    clipped_distance,
+    nearest_grid,
+    nearest_point,
+    nearest_sq,
+    within_fraction,
+)
 
 DIST_TOL = 1e-5   # metres: float32 differences of points within 1 m of the origin
 TAU = 0.03

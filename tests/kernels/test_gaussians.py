@@ -11,11 +11,11 @@ from scipy.spatial.transform import Rotation
 from kernels.gaussians import (
     Gaussians,
     Sim3,
+    concatenate,
     covariance,
     quat_multiply,
     quat_to_rotmat,
     rotmat_to_quat,
-    concatenate,
     transform_bodies,
     transform_gaussians,
 )

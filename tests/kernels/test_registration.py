@@ -1,7 +1,7 @@
 """Registration kernels: E against a NumPy reference, Kabsch/ICP/scale refinement properties,
 recovery of a known Sim(3) from a partial view for every up axis, and the retry of a wrong
 up axis within the same batched call. (One program per shape bucket is tested where the
-buckets are made: ``tests/construct/test_register.py``.)"""
+buckets are made: ``tests/construct/objects/test_register.py``.)"""
 
 from __future__ import annotations
 
@@ -10,8 +10,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from kernels.registration import (AXIS_NAMES, UP_AXES, SearchSpec, _kabsch, axis_rotation, hypothesis_energy,
-                                  icp, refine_scale, register, robust_extents, scale_init, yaw_matrix)
+from kernels.registration import (
+    AXIS_NAMES,
+    UP_AXES,
+    SearchSpec,
+    _kabsch,
+    axis_rotation,
+    hypothesis_energy,
+    icp,
+    refine_scale,
+    register,
+    robust_extents,
+    scale_init,
+    yaw_matrix,
+)
 from tests.kernels.shapes import in_random_frame, l_shape, padded, partial_view
 
 TAU = 0.03

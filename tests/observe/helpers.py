@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.io.camera import Camera, intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.synthetic.scene import look_at
+from phirie_jax.types import Camera
 
 
 def ring(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0), width=80, height_px=60, focal=70.0,

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from phirie_jax.config import ObserveConfig
 from phirie_jax.observe.associate import associate, voxel_iou, voxel_keys
+from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.lift import Proposal, lift_view
 from phirie_jax.observe.masks import Segment, ViewMasks
 from phirie_jax.observe.raycast import Raycaster

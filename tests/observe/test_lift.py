@@ -10,17 +10,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from phirie_jax.config import ObserveConfig
 from phirie_jax.errors import SceneInputError
+from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.lift import interior, lift_view
-from phirie_jax.observe.masks import (
-    Segment,
-    ViewFailure,
-    ViewMasks,
-    external_masks,
-    file_masks,
-    read_label_png,
-)
+from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, external_masks, file_masks, read_label_png
 from phirie_jax.observe.raycast import Raycaster
 from tests.observe.helpers import ring, write_png
 

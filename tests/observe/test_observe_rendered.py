@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from phirie_jax.config import ObserveConfig, SurfaceConfig
+from phirie_jax.observe.config import ObserveConfig, SurfaceConfig
 
 pytestmark = pytest.mark.slow
 
@@ -56,6 +56,6 @@ def test_scan_mesh_with_mask_files_finds_every_object(tiny_scene, tmp_path):
 
 
 def run(root, out, config):
-    from phirie_jax.observe import run_observe
+    from phirie_jax.observe.stage import run_observe
 
     return run_observe(root, out, config, masks="files")

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from phirie_jax.config import ObserveConfig, SurfaceConfig
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.scene import SceneInput
-from phirie_jax.observe.pipeline import scene_surface
+from phirie_jax.observe.config import ObserveConfig, SurfaceConfig
 from phirie_jax.observe.raycast import pixel_grid, pixel_rays
+from phirie_jax.observe.stage import scene_surface
 from phirie_jax.observe.surface import active_blocks, fuse_depths, surface_nets
+from phirie_jax.types import SceneInput
 from tests.conftest import shared_data
 from tests.observe.helpers import ring
 
@@ -98,7 +98,7 @@ def test_active_blocks_cover_the_truncation_band():
 
 
 def test_real_rgbd_frames_fuse_to_a_plausible_surface():
-    from phirie_jax.io.rgbd import read_rgbd_cameras
+    from tests.fixtures.rgbd import read_rgbd_cameras
 
     root = shared_data("rgbd")
     cams = read_rgbd_cameras(root / "camera_primesense.json", root / "trajectory.log", root / "color")

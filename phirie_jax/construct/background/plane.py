@@ -1,0 +1,255 @@
+"""Support plane and the fill grid of one removed object (host side; the fit is ``kernels.fill``).
+
+1. Ring: kept Gaussian centres (opaque enough) whose horizontal distance from the object's
+   footprint (Q_i and the placed asset, rasterized on a ``grid`` raster in the gravity frame)
+   is within [``ring_inner``, ``ring_outer``] and whose height is within ``ring_height`` of
+   the object's base.
+2. Plane: RANSAC over the ring (``ransac_iterations`` seeded hypotheses, inliers within
+   ``plane_threshold``, normal within ``max_tilt_deg`` of up, passing within
+   ``plane_base_tolerance`` of the object's base), then least-squares refits on the inliers. Too few ring points or inliers, or no plane near up: an *unsupported region*.
+3. Cells of a ``grid`` lattice on the plane. A cell is *covered* when a kept Gaussian of the
+   plane's slab lies within ``cover_factor`` × their median spacing. A cell is *supported* when
+   it lies inside the closure of what is known to be plane there: covered cells, the object's
+   contact base (asset points within ``slab`` of the plane) and removed Gaussians of the slab
+   (the plane was captured there). Exposed = supported, not covered and under the object's
+   shadow (its points and removed Gaussians projected on the plane). The fill covers the
+   exposed cells grown by ``margin``; past a table's edge nothing is supported, so nothing is
+   laid in the air.
+4. Disks: one flat Gaussian per fill cell, normal-aligned, σ = ``disk_sigma`` × grid in plane.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import ndimage
+
+from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.types import GaussianSplatData
+
+SH_C0 = 0.28209479177387814
+REFITS = 3            # least-squares refits of the RANSAC plane on its inliers
+DEGENERATE = 1e-12    # |n|² of a hypothesis from collinear samples
+ASSET_SAMPLE_CELLS = 4  # asset surface samples per grid cell area (its shadow has no gaps)
+
+
+def _rgb_to_dc(rgb: np.ndarray) -> np.ndarray:
+    return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
+
+
+def opacity(data: GaussianSplatData) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-data.opacity_logits.astype(np.float64)))
+
+
+def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (u, v) with (u, v, normal) right-handed."""
+    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(helper, normal)
+    u /= np.linalg.norm(u)
+    return u, np.cross(normal, u)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    point: np.ndarray   # (3,) on the plane
+    normal: np.ndarray  # (3,) unit, towards up
+    inliers: int
+    points: int
+    rms: float          # metres, of the inliers
+
+    def height(self, x: np.ndarray) -> np.ndarray:
+        return (np.asarray(x, np.float64) - self.point) @ self.normal
+
+    def as_dict(self) -> dict:
+        return {"point": self.point.round(6).tolist(), "normal": self.normal.round(6).tolist(),
+                "inliers": self.inliers, "points": self.points, "rms_m": round(self.rms, 6)}
+
+
+def fit_plane(points: np.ndarray, up: np.ndarray, config: BackgroundConfig, anchor: np.ndarray | None = None
+              ) -> tuple[Plane | None, str | None]:
+    """Robust plane of ``points`` (P, 3): RANSAC then least-squares refits. (None, reason) if none.
+
+    anchor: the object's base point; a support plane passes within ``plane_base_tolerance`` of it
+    (a table's underside, parallel and a few cm below, often has more points in the ring).
+    """
+    n_pts = len(points)
+    if n_pts < max(3, config.min_plane_points):
+        return None, f"{n_pts} surface points around the footprint (need {config.min_plane_points})"
+    rng = np.random.default_rng(config.seed)
+    samples = np.stack([rng.choice(n_pts, 3, replace=False) for _ in range(config.ransac_iterations)])
+    a, b, c = points[samples[:, 0]], points[samples[:, 1]], points[samples[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norm2 = np.sum(normals**2, axis=1)
+    normals = normals / np.sqrt(np.maximum(norm2, DEGENERATE))[:, None]
+    cos_tilt = np.abs(normals @ up)
+    ok = (norm2 > DEGENERATE) & (cos_tilt >= np.cos(np.deg2rad(config.max_tilt_deg)))
+    if anchor is not None:
+        ok &= np.abs(np.sum((anchor - a) * normals, axis=1)) <= config.plane_base_tolerance
+    dist = np.abs((points[None] - a[:, None]) @ normals[..., None])[..., 0]  # (H, P)
+    counts = np.where(ok, np.sum(dist <= config.plane_threshold, axis=1), -1)
+    best = int(np.argmax(counts))
+    if counts[best] < 3:
+        where = "" if anchor is None else f" passing within {config.plane_base_tolerance} m of the object's base"
+        return None, f"no plane within {config.max_tilt_deg}° of up{where} among {n_pts} surface points"
+    inliers = dist[best] <= config.plane_threshold
+    centre, normal = a[best], normals[best]
+    for _ in range(REFITS):
+        centre = points[inliers].mean(0)
+        _, _, vt = np.linalg.svd(points[inliers] - centre, full_matrices=False)
+        normal = vt[-1]
+        new = np.abs((points - centre) @ normal) <= config.plane_threshold
+        if new.sum() < 3:
+            break
+        inliers = new
+    if normal @ up < 0:
+        normal = -normal
+    if normal @ up < np.cos(np.deg2rad(config.max_tilt_deg)):
+        return None, f"the best plane is tilted {np.degrees(np.arccos(normal @ up)):.0f}° from up"
+    if anchor is not None and abs((anchor - centre) @ normal) > config.plane_base_tolerance:
+        return None, "the refitted plane does not pass by the object's base"
+    fraction = inliers.mean()
+    rms = float(np.sqrt(np.mean(((points[inliers] - centre) @ normal) ** 2)))
+    plane = Plane(centre, normal, int(inliers.sum()), n_pts, rms)
+    if fraction < config.min_inlier_fraction:
+        return None, (f"{fraction:.0%} of the surface points around the footprint are on one plane "
+                      f"(need {config.min_inlier_fraction:.0%})")
+    return plane, None
+
+
+def _raster(xy: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool grid with the cells that contain any of the points (outside points dropped)."""
+    grid = np.zeros(shape, bool)
+    ij = np.floor((xy - origin) / cell).astype(np.int64)
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[1])
+    grid[ij[ok, 0], ij[ok, 1]] = True
+    return grid
+
+
+def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, grid: float, seed: int) -> np.ndarray:
+    """Q_i and (when registered) points on the placed asset's surface dense enough to leave no gaps
+    in its shadow on a ``grid`` raster."""
+    if mesh is None:
+        return q
+    import trimesh
+
+    surface = trimesh.Trimesh(mesh[0], mesh[1], process=False)
+    count = int(min(200_000, max(1000, ASSET_SAMPLE_CELLS * surface.area / grid**2)))
+    samples, _ = trimesh.sample.sample_surface(surface, count, seed=seed)
+    return np.concatenate([q, mesh[0], np.asarray(samples)])
+
+
+def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray, up: np.ndarray,
+                base: float, config: BackgroundConfig) -> np.ndarray:
+    """Indices of kept Gaussians in the ring around the footprint (module docstring, 1)."""
+    from phirie_jax.construct.objects.support import rotation_to_z
+
+    rot = rotation_to_z(up)
+    obj_g = obj_points @ rot.T
+    cell = config.grid
+    origin = obj_g[:, :2].min(0) - config.ring_outer - cell
+    shape = tuple(np.ceil((obj_g[:, :2].max(0) + config.ring_outer + cell - origin) / cell).astype(int) + 1)
+    footprint = _raster(obj_g[:, :2], origin, cell, shape)
+    dist = ndimage.distance_transform_edt(~footprint) * cell
+    kept_g = kept_means @ rot.T
+    ij = np.floor((kept_g[:, :2] - origin) / cell).astype(np.int64)
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[1])
+    d = np.full(len(kept_means), np.inf)
+    d[inside] = dist[ij[inside, 0], ij[inside, 1]]
+    near_base = np.abs(kept_g[:, 2] - base) <= config.ring_height
+    return np.flatnonzero((d >= config.ring_inner) & (d <= config.ring_outer) & near_base
+                          & (kept_opacity >= config.min_opacity))
+
+
+@dataclasses.dataclass(frozen=True)
+class FillRegion:
+    """The fill of one object on its plane."""
+
+    plane: Plane
+    u: np.ndarray            # (3,) in-plane axes
+    v: np.ndarray
+    centres: np.ndarray      # (K, 3) disk centres (cells of the fill)
+    exposed: int             # exposed cells (before the margin)
+    covered_spacing: float   # median spacing of the kept plane Gaussians, metres
+
+    @property
+    def num(self) -> int:
+        return len(self.centres)
+
+    def quats(self) -> np.ndarray:
+        """(K, 4) wxyz rotation with columns (u, v, normal)."""
+        from scipy.spatial.transform import Rotation
+
+        frame = np.stack([self.u, self.v, self.plane.normal], axis=-1)
+        q = np.roll(Rotation.from_matrix(frame).as_quat(), 1)
+        return np.tile(q, (self.num, 1))
+
+
+def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray,
+                removed_means: np.ndarray, config: BackgroundConfig) -> FillRegion:
+    """The exposed cells of the plane under one object, grown by the margin (module docstring, 3)."""
+    from scipy.spatial import cKDTree
+
+    u, v = tangent_basis(plane.normal)
+    cell = config.grid
+
+    def plane_xy(x):
+        d = np.asarray(x, np.float64) - plane.point
+        return np.stack([d @ u, d @ v], axis=1)
+
+    h_obj = plane.height(obj_points)
+    shadow_pts = np.concatenate([plane_xy(obj_points[h_obj > -config.slab]),
+                                 plane_xy(removed_means[plane.height(removed_means) > -config.slab])])
+    reach = config.obs_radius + config.margin + 2 * cell
+    origin = shadow_pts.min(0) - reach
+    shape = tuple(np.ceil((shadow_pts.max(0) + reach - origin) / cell).astype(int) + 1)
+    ia, ib = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    centres_xy = origin + (np.stack([ia, ib], -1) + 0.5) * cell  # (H, W, 2)
+
+    h_kept = plane.height(kept_means)
+    on_plane = (np.abs(h_kept) <= config.slab) & (kept_opacity >= config.min_opacity)
+    kept_xy = plane_xy(kept_means[on_plane])
+    lo, hi = origin - reach, origin + np.array(shape) * cell + reach
+    local = kept_xy[np.all((kept_xy >= lo) & (kept_xy <= hi), axis=1)]
+    if len(local) >= 2:
+        d_nn, _ = cKDTree(local).query(local, k=2)
+        spacing = float(np.median(d_nn[:, 1]))
+        d, _ = cKDTree(local).query(centres_xy.reshape(-1, 2), distance_upper_bound=max(cell, config.cover_factor * spacing))
+        covered = np.isfinite(d).reshape(shape)
+    else:
+        spacing, covered = float("nan"), np.zeros(shape, bool)
+
+    removed_slab = removed_means[np.abs(plane.height(removed_means)) <= config.slab]
+    base = obj_points[(h_obj > -config.slab) & (h_obj <= config.slab)]
+    known = covered | _raster(plane_xy(removed_slab), origin, cell, shape) | _raster(plane_xy(base), origin, cell, shape)
+    supported = ndimage.binary_fill_holes(ndimage.binary_closing(known, iterations=2, border_value=0))
+    shadow = ndimage.binary_fill_holes(ndimage.binary_closing(_raster(shadow_pts, origin, cell, shape), iterations=2))
+    exposed = supported & ~covered & shadow
+    grow = round(config.margin / cell)
+    fill = ndimage.binary_dilation(exposed, iterations=grow) & supported if grow > 0 else exposed
+    xy = centres_xy[fill]
+    centres = plane.point + xy[:, :1] * u + xy[:, 1:] * v
+    return FillRegion(plane, u, v, centres, int(exposed.sum()), spacing)
+
+
+def neighbour_colours(centres: np.ndarray, kept_means: np.ndarray, kept_rgb: np.ndarray, k: int) -> np.ndarray:
+    """(K, 3) mean colour of the k nearest kept Gaussians (``kept_rgb`` (N, 3)) of each centre."""
+    from scipy.spatial import cKDTree
+
+    if len(kept_means) == 0:
+        return np.full((len(centres), 3), 0.5)
+    _, nn = cKDTree(kept_means).query(centres, k=min(k, len(kept_means)))
+    return kept_rgb[nn.reshape(len(centres), -1)].mean(axis=1)
+
+
+def disks(region: FillRegion, rgb: np.ndarray, config: BackgroundConfig, sh_coeffs: int) -> GaussianSplatData:
+    """The initial disks of a fill region, coloured ``rgb`` (K, 3), SH padded to ``sh_coeffs``."""
+    sigma = config.disk_sigma * config.grid
+    n = region.num
+    sh = np.zeros((n, sh_coeffs, 3), np.float32)
+    sh[:, 0] = _rgb_to_dc(rgb)
+    logit = np.log(config.init_opacity / (1 - config.init_opacity))
+    return GaussianSplatData(
+        means=region.centres.astype(np.float32), quats=region.quats().astype(np.float32),
+        log_scales=np.tile(np.log([sigma, sigma, config.disk_thickness * sigma]), (n, 1)).astype(np.float32),
+        opacity_logits=np.full(n, logit, np.float32), sh=sh)

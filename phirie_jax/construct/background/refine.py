@@ -1,0 +1,213 @@
+"""Host driver of the disk refinement (``kernels.fill``): static buckets, capacity, the Adam loop.
+
+Every disk of every object is refined together against every frame: a disk may show in
+another object's frame, and one loss keeps them consistent. Shapes are bucketed so a second
+scene of the same buckets reuses the compiled step: disks and slab Gaussians padded to powers
+of two (transparent padding), frames padded to a power of two with empty frames (zero mask,
+a camera that sees nothing). The intersection capacity starts at twice what the initial disks
+need (bounded on the host from the disks' largest extent) and grows (one recompile) if a step
+reports overflow; that step is then repeated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kernels import fill as fill_kernel
+from kernels.raster import RasterConfig
+from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.construct.background.targets import Frame
+from phirie_jax.render import MAX_CAPACITY, gaussian_bucket, next_power_of_two, pad_gaussians
+from phirie_jax.types import GaussianSplatData
+
+SH_C0 = 0.28209479177387814
+MIN_CAPACITY = 1 << 14
+EMPTY_DEPTH = -1e6      # padding frames: a camera translation that puts everything behind it
+MIN_OPACITY = 1.0 / 255.0  # disks fitted below this are dropped (they never show)
+
+TRACE_COUNTS = {"fill_step": 0}
+
+
+def _traced_step(params, opt_state, geom, frames, lrs, *, width, config, dssim_weight):
+    TRACE_COUNTS["fill_step"] += 1  # runs only while jax traces
+    return fill_kernel.fill_step(params, opt_state, geom, frames, lrs, width=width, config=config,
+                                 dssim_weight=dssim_weight)
+
+
+_step = jax.jit(_traced_step, static_argnames=("width", "config", "dssim_weight"))
+
+
+@dataclasses.dataclass(frozen=True)
+class DiskSet:
+    """All objects' disks: their Gaussians (SH DC) and in-plane axes, in one array each."""
+
+    disks: GaussianSplatData  # (N,) SH DC only
+    tangents: np.ndarray      # (N, 2, 3)
+    owner: np.ndarray         # (N,) object id
+
+    def normals(self) -> np.ndarray:
+        """(N, 3) unit plane normals (u × v)."""
+        return np.cross(self.tangents[:, 0], self.tangents[:, 1]).astype(np.float64)
+
+
+def geometry(disk_set: DiskSet, size: int, grid: float, max_sigma: float) -> fill_kernel.FillGeometry:
+    n = disk_set.disks.num
+    pad = size - n
+    d = disk_set.disks
+    return fill_kernel.FillGeometry(
+        centres=jnp.asarray(np.concatenate([d.means, np.zeros((pad, 3), np.float32)])),
+        tangents=jnp.asarray(np.concatenate([disk_set.tangents, np.zeros((pad, 2, 3))]).astype(np.float32)),
+        quats=jnp.asarray(np.concatenate([d.quats, np.tile([[1.0, 0, 0, 0]], (pad, 1))]).astype(np.float32)),
+        log_thickness=jnp.asarray(np.concatenate([d.log_scales[:, 2], np.full(pad, -10.0)]).astype(np.float32)),
+        valid=jnp.asarray(np.arange(size) < n),
+        max_offset=jnp.float32(grid), min_log_scale=jnp.float32(np.log(0.25 * grid)),
+        max_log_scale=jnp.float32(np.log(max_sigma * grid)))
+
+
+def initial_params(disk_set: DiskSet, size: int) -> fill_kernel.FillParams:
+    d = disk_set.disks
+    pad = size - d.num
+    return fill_kernel.FillParams(
+        dc=jnp.asarray(np.concatenate([d.sh[:, 0], np.zeros((pad, 3), np.float32)])),
+        opacity_logits=jnp.asarray(np.concatenate([d.opacity_logits, np.full(pad, -10.0, np.float32)])),
+        raw_offsets=jnp.zeros((size, 2), jnp.float32),
+        log_scales=jnp.asarray(np.concatenate([d.log_scales[:, :2], np.zeros((pad, 2), np.float32)])))
+
+
+def frame_disks(disk_set: DiskSet, frame: Frame, max_sigma: float, max_offset: float) -> np.ndarray:
+    """Indices of the disks (any object's) that can touch the frame's reachable pixels while fitted."""
+    from phirie_jax.construct.background.targets import touching
+
+    grown = dataclasses.replace(disk_set.disks, log_scales=np.full_like(disk_set.disks.log_scales, np.log(
+        max_sigma + max_offset)))  # a disk moved by its offset stays inside a disc of σ + offset (3σ bound)
+    return np.flatnonzero(touching(grown, frame.crop, frame.reach))
+
+
+def stack_frames(frames: list[Frame], count: int, disk_lists: list[np.ndarray]) -> fill_kernel.FillFrame:
+    """The frames as one batched ``FillFrame`` of ``count`` (≥ len(frames)) entries."""
+    slab_size = gaussian_bucket(max(f.slab.num for f in frames))
+    disk_size = gaussian_bucket(max(len(d) for d in disk_lists))
+    size = frames[0].crop.size
+    items = []
+    for k in range(count):
+        if k < len(frames):
+            f = frames[k]
+            slab = pad_gaussians(f.slab.to_kernel(), slab_size)
+            disks = np.zeros(disk_size, np.int32)
+            disks[: len(disk_lists[k])] = disk_lists[k]
+            w2c = np.asarray(f.crop.camera.world_to_camera, np.float32)
+            items.append(fill_kernel.FillFrame(
+                K=jnp.asarray(f.crop.camera.K, jnp.float32), world_to_camera=jnp.asarray(w2c), slab=slab,
+                front_rgb=jnp.asarray(f.front_rgb), front_trans=jnp.asarray(f.front_trans),
+                back_rgb=jnp.asarray(f.back_rgb), kept_rgb=jnp.asarray(f.kept_rgb), reach=jnp.asarray(f.reach),
+                target=jnp.asarray(f.target), mask=jnp.asarray(f.mask), disks=jnp.asarray(disks),
+                disk_valid=jnp.asarray(np.arange(disk_size) < len(disk_lists[k]))))
+        else:
+            w2c = np.eye(4, dtype=np.float32)
+            w2c[2, 3] = EMPTY_DEPTH
+            first = items[0]
+            items.append(dataclasses.replace(
+                first, world_to_camera=jnp.asarray(w2c), mask=jnp.zeros((size, size), jnp.float32)))
+    return jax.tree.map(lambda *x: jnp.stack(x), *items)
+
+
+def _to_data(params: fill_kernel.FillParams, geom: fill_kernel.FillGeometry, n: int, sh_coeffs: int
+             ) -> GaussianSplatData:
+    g = fill_kernel.fill_gaussians(params, geom)
+    sh = np.zeros((n, sh_coeffs, 3), np.float32)
+    sh[:, 0] = np.asarray(g.sh[:n, 0])
+    return GaussianSplatData(means=np.asarray(g.means[:n], np.float32), quats=np.asarray(g.quats[:n], np.float32),
+                             log_scales=np.asarray(g.log_scales[:n], np.float32),
+                             opacity_logits=np.asarray(g.opacity_logits[:n], np.float32), sh=sh)
+
+
+def tile_intersections(data: GaussianSplatData, crop, tile: int) -> int:
+    """An upper bound of the tile intersections of ``data`` in a crop (the radius bound's squares)."""
+    from phirie_jax.construct.background.views import screen_radius_bound
+
+    if data.num == 0:
+        return 0
+    uv, z, r = screen_radius_bound(data, crop.camera)
+    tiles = -(-crop.size // tile)
+    lo = np.clip(np.floor((uv - r[:, None]) / tile), 0, tiles)
+    hi = np.clip(np.floor((uv + r[:, None]) / tile), -1, tiles - 1)
+    span = np.maximum(hi - lo + 1, 0)
+    return int(np.sum(np.where(z > 0, span[:, 0] * span[:, 1], 0)))
+
+
+def refine(disk_set: DiskSet, frames: list[Frame], config: BackgroundConfig, sh_coeffs: int
+           ) -> tuple[GaussianSplatData, dict]:
+    """Fit the disks to the frames' targets. Returns the refined disks (SH padded to ``sh_coeffs``,
+    those fitted transparent dropped) and a record (losses, steps, buckets, times).
+
+    One compiled program: the step returns the loss of the parameters it was given, so the
+    initial loss is the first step's and the final loss one more call's (whose update is dropped).
+    """
+    n = disk_set.disks.num
+    size = gaussian_bucket(n)
+    geom = geometry(disk_set, size, config.grid, config.max_disk_sigma)
+    params = initial_params(disk_set, size)
+    batch = next_power_of_two(len(frames))
+    disk_lists = [frame_disks(disk_set, f, config.max_disk_sigma * config.grid, config.grid) for f in frames]
+    stacked = stack_frames(frames, batch, disk_lists)
+    width = frames[0].crop.size
+    lrs = fill_kernel.FillParams(dc=jnp.float32(config.lr_colour), opacity_logits=jnp.float32(config.lr_opacity),
+                                 raw_offsets=jnp.float32(config.lr_offset), log_scales=jnp.float32(config.lr_scale))
+    grown = dataclasses.replace(disk_set.disks, log_scales=np.full_like(
+        disk_set.disks.log_scales, np.log(config.max_disk_sigma * config.grid)))
+    tile = RasterConfig().tile_size
+    estimate = max(tile_intersections(grown.subset(d), f.crop, tile) + tile_intersections(f.slab, f.crop, tile)
+                   for f, d in zip(frames, disk_lists))
+    raster = RasterConfig(capacity=max(MIN_CAPACITY, next_power_of_two(estimate)))
+    statics = {"width": width, "dssim_weight": float(config.dssim_weight)}
+    opt_state = fill_kernel.init_state(params)
+    init_params = params
+    losses, frame_losses = [], []
+    steps = retries = 0
+    first_s = None
+    t0 = time.perf_counter()
+    while True:
+        new_params, new_state, loss, (per_frame, overflow, needed) = _step(params, opt_state, geom, stacked, lrs,
+                                                                           config=raster, **statics)
+        if bool(overflow):  # this step's gradient is incomplete: grow, repeat it
+            raster = _grow(raster, int(needed))
+            retries += 1
+            continue
+        if first_s is None:
+            first_s = time.perf_counter() - t0
+        losses.append(float(loss))
+        frame_losses.append(np.asarray(per_frame)[: len(frames)])
+        if steps == config.iterations:
+            break
+        params, opt_state = new_params, new_state
+        steps += 1
+    loop_s = time.perf_counter() - t0 - first_s
+    reverted = None
+    if not np.isfinite(losses[-1]) or losses[-1] > losses[0]:
+        reverted = "the fit did not lower the loss" if np.isfinite(losses[-1]) else "the fit diverged"
+        params = init_params
+    data = _to_data(params, geom, n, sh_coeffs)
+    alive = 1.0 / (1.0 + np.exp(-data.opacity_logits.astype(np.float64))) >= MIN_OPACITY
+    record = {
+        "disks": n, "disks_kept": int(alive.sum()), "frames": len(frames), "buckets": {
+            "disks": size, "frames": batch, "crop": width, "slab": int(stacked.slab.means.shape[1]),
+            "frame_disks": int(stacked.disks.shape[1]),
+            "capacity": raster.capacity},
+        "steps": steps, "capacity_retries": retries, "loss_initial": losses[0], "loss_final": losses[-1],
+        "frame_loss_initial": frame_losses[0].round(6).tolist(), "frame_loss_final": frame_losses[-1].round(6).tolist(),
+        "loss_curve": np.asarray(losses).round(6).tolist(), "reverted": reverted,
+        "first_call_s": round(first_s, 3), "loop_s": round(loop_s, 3)}
+    return data.subset(alive), record
+
+
+def _grow(raster: RasterConfig, needed: int) -> RasterConfig:
+    capacity = max(2 * raster.capacity, next_power_of_two(needed))
+    if capacity > MAX_CAPACITY:
+        raise RuntimeError(f"the fill needs {needed} tile intersections, more than the renderer's maximum "
+                           f"{MAX_CAPACITY}: use a smaller crop size or a coarser grid")
+    return dataclasses.replace(raster, capacity=capacity)

@@ -1,0 +1,212 @@
+"""Source-Gaussian removal coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask.
+
+For each object the object stage made (status in ``BackgroundConfig.remove_statuses``):
+
+- R_obs: Gaussians whose centre is within ``obs_radius`` (paper: 3 cm) of the observed
+  surface samples Q_i (``observe/instance_<id>.npz``);
+- R_asset: ... within ``asset_radius`` (paper: 2.4 cm) of the registered asset's surface
+  (``objects/<id>/mesh.obj`` placed by ``pose``): it reaches what the scan missed (the back,
+  the base);
+- R_mask: centres inside the expanded object bounds (Q_i ∪ the placed asset, grown by
+  ``bounds_margin``) that project inside the instance's mask in ≥ ``mask_votes`` views (paper: 2)
+  *and are visible there*: a centre more than ``occlusion_tolerance`` behind the depth rendered at
+  its pixel is occluded in that view and does not vote (the paper's code has no such test, so
+  the table behind an object, inside its bounds, was voted away). The depth is rendered from the
+  Gaussians inside the expanded bounds only: a mask pixel is the *first* hit's label, so what
+  is in front of the instance there is the instance itself, which lies inside its bounds.
+
+Objects the object stage rejected or failed are not removed (they have no body; their
+Gaussians stay in the background) and are recorded as skipped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.construct.background.views import Crop, CropRenderer, make_crop, pass_bucket
+from phirie_jax.types import Camera, GaussianSplatData
+
+DEPTH_ALPHA = 0.5  # rendered alpha below this at a pixel: nothing of the object there to occlude
+
+
+@dataclasses.dataclass
+class ObjectInput:
+    """What the background branch knows of one object."""
+
+    id: int
+    q: np.ndarray                          # (M, 3) observed surface samples Q_i
+    mesh: tuple[np.ndarray, np.ndarray] | None  # placed asset (world vertices (V, 3), faces (F, 3))
+    views: np.ndarray                      # (V,) camera index of each mask view
+    labels: np.ndarray                     # (V,) the instance's value in that view's mask
+    mask_paths: list[Path]                 # (V,) mask image of that view
+    bboxes: np.ndarray                     # (V, 4) x0 y0 x1 y1 of the instance in that mask
+    pixels: np.ndarray                     # (V,) mask area
+
+    def bounds(self, margin: float) -> np.ndarray:
+        """(2, 3) Q_i ∪ asset box grown by ``margin``."""
+        pts = self.q if self.mesh is None else np.concatenate([self.q, self.mesh[0]])
+        return np.stack([pts.min(0) - margin, pts.max(0) + margin])
+
+
+def _resolve(out_dir: Path, path: str) -> Path:
+    p = Path(path)
+    return p if p.is_absolute() else out_dir / p
+
+
+def load_object(entry: dict, instance: dict, out_dir: Path) -> ObjectInput:
+    """An object's inputs from the manifest's ``objects`` and ``instances`` entries."""
+    import trimesh
+
+    data = np.load(_resolve(out_dir, instance["points"]))
+    mesh = None
+    if entry.get("mesh") and entry.get("pose") is not None:
+        loaded = trimesh.load(_resolve(out_dir, entry["mesh"]), force="mesh", process=False)
+        pose = np.asarray(entry["pose"], np.float64)
+        vertices = np.asarray(loaded.vertices, np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        mesh = (vertices, np.asarray(loaded.faces, np.int64))
+    return ObjectInput(
+        id=int(entry["id"]), q=np.asarray(data["points"], np.float64), mesh=mesh,
+        views=np.asarray(data["views"], np.int64), labels=np.asarray(data["labels"], np.int64),
+        mask_paths=[_resolve(out_dir, str(p)) for p in data["mask_paths"]],
+        bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64))
+
+
+def _in_box(means: np.ndarray, box: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(np.all((means >= box[0]) & (means <= box[1]), axis=1))
+
+
+def near_points(means: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """Indices of ``means`` within ``radius`` of any of ``points`` (R_obs)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    box = np.stack([points.min(0) - radius, points.max(0) + radius])
+    idx = _in_box(means, box)
+    d, _ = cKDTree(points).query(means[idx], distance_upper_bound=radius)
+    return idx[np.isfinite(d) & (d <= radius)]
+
+
+def near_surface(means: np.ndarray, vertices: np.ndarray, faces: np.ndarray, radius: float) -> np.ndarray:
+    """Indices of ``means`` within ``radius`` of the triangle surface (R_asset; exact point–triangle
+    distances by Open3D's ``RaycastingScene``)."""
+    import open3d as o3d
+
+    box = np.stack([vertices.min(0) - radius, vertices.max(0) + radius])
+    idx = _in_box(means, box)
+    if len(idx) == 0 or len(faces) == 0:
+        return np.zeros(0, np.int64)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    d = scene.compute_distance(o3d.core.Tensor(means[idx].astype(np.float32))).numpy()
+    return idx[d <= radius]
+
+
+def read_mask(path: Path) -> np.ndarray:
+    import cv2
+
+    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if mask is None:
+        raise OSError(f"mask image unreadable: {path}")
+    return mask if mask.ndim == 2 else mask[..., 0]
+
+
+@dataclasses.dataclass
+class MaskJob:
+    """One (object, view) of the R_mask pass."""
+
+    obj: int       # index into the objects list
+    view: int      # camera index
+    label: int
+    mask_path: Path
+    crop: Crop
+
+
+def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
+               config: BackgroundConfig, crops: CropRenderer) -> tuple[list[np.ndarray], list[dict]]:
+    """R_mask of every object (indices into ``data``) and a record per object."""
+    means = data.means.astype(np.float64)
+    candidates = [_in_box(means, o.bounds(config.bounds_margin)) for o in objects]
+    picked = []
+    for k, o in enumerate(objects):
+        order = np.argsort(-o.pixels, kind="stable")[: config.mask_views]
+        picked += [(k, int(j)) for j in order if int(o.views[j]) < len(cameras) and o.pixels[j] > 0]
+    # one crop size for the whole pass (one compiled program): the largest any view needs
+    size = max([make_crop(cameras[objects[k].views[j]], 0, objects[k].bboxes[j], config.mask_crop_sizes,
+                          config.crop_margin_px).size for k, j in picked], default=min(config.mask_crop_sizes))
+    jobs = [MaskJob(k, int(objects[k].views[j]), int(objects[k].labels[j]), objects[k].mask_paths[j],
+                    make_crop(cameras[objects[k].views[j]], int(objects[k].views[j]), objects[k].bboxes[j], (size,),
+                              config.crop_margin_px)) for k, j in picked]
+    pad = pass_bucket([len(c) for c in candidates])
+    votes = [np.zeros(len(c), np.int64) for c in candidates]
+    seen = [np.zeros(len(c), np.int64) for c in candidates]
+    used: list[list[int]] = [[] for _ in objects]
+    problems: list[list[str]] = [[] for _ in objects]
+    for job in jobs:
+        idx = candidates[job.obj]
+        if len(idx) == 0:
+            continue
+        try:
+            mask = read_mask(job.mask_path)
+        except OSError as err:
+            problems[job.obj].append(str(err))
+            continue
+        cam = cameras[job.view]
+        if mask.shape != (cam.height, cam.width):
+            problems[job.obj].append(f"{job.mask_path}: {mask.shape[1]}×{mask.shape[0]}, camera is "
+                                     f"{cam.width}×{cam.height}")
+            continue
+        try:
+            out = crops.render(data.subset(idx), job.crop, pad)
+        except RuntimeError as err:  # the renderer's buffers: this view does not vote
+            problems[job.obj].append(f"view {job.view}: {err}")
+            continue
+        depth = np.asarray(out.depth_normalized)
+        alpha = np.asarray(out.alpha)
+        uv, z = job.crop.camera.project(means[idx])
+        col = np.floor(uv[:, 0]).astype(np.int64)
+        row = np.floor(uv[:, 1]).astype(np.int64)
+        size = job.crop.size
+        ok = (z > 0) & (col >= 0) & (col < size) & (row >= 0) & (row < size)
+        ok[ok] &= job.crop.inside[row[ok], col[ok]]
+        full = np.floor(job.crop.to_full(uv[ok])).astype(np.int64)
+        fc = np.clip(full[:, 0], 0, cam.width - 1)
+        fr = np.clip(full[:, 1], 0, cam.height - 1)
+        in_mask = np.zeros(len(idx), bool)
+        in_mask[ok] = mask[fr, fc] == job.label
+        visible = np.zeros(len(idx), bool)
+        r, c = row[ok], col[ok]
+        visible[ok] = (alpha[r, c] < DEPTH_ALPHA) | (z[ok] <= depth[r, c] + config.occlusion_tolerance)
+        votes[job.obj] += in_mask & visible
+        seen[job.obj] += in_mask
+        used[job.obj].append(job.view)
+    sets, records = [], []
+    for k, o in enumerate(objects):
+        chosen = votes[k] >= config.mask_votes
+        sets.append(candidates[k][chosen])
+        occluded = (seen[k] >= config.mask_votes) & ~chosen
+        records.append({"views": used[k], "candidates": len(candidates[k]),
+                        "occluded_rejected": int(occluded.sum()), "problems": problems[k]})
+    return sets, records
+
+
+def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
+                 config: BackgroundConfig, crops: CropRenderer) -> tuple[list[np.ndarray], list[dict]]:
+    """R_i for every object (sorted unique indices into ``data``) and per-object records with the
+    counts of R_obs, R_asset, R_mask and their union."""
+    means = data.means.astype(np.float64)
+    masks, mask_records = mask_votes(data, objects, cameras, config, crops)
+    sets, records = [], []
+    for o, r_mask, mask_record in zip(objects, masks, mask_records):
+        r_obs = near_points(means, o.q, config.obs_radius)
+        r_asset = (near_surface(means, o.mesh[0], o.mesh[1], config.asset_radius)
+                   if o.mesh is not None else np.zeros(0, np.int64))
+        union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
+        sets.append(union)
+        records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask),
+                        "union": len(union), "asset_surface": o.mesh is not None, "mask_pass": mask_record})
+    return sets, records

@@ -1,0 +1,387 @@
+"""Inpainting targets: one primary view per object, every edit of a frame in one target.
+
+Primary view of an object: the camera that sees its fill region largest and sharpest — the
+projected area in pixels of its fill cells (in front of the camera and inside the image; the
+image-space resolution on the exposed footprint), times a blur factor when the captured
+images are available (variance of the Laplacian inside that area relative to the median of
+the five best views, capped at 1). Objects whose primary views coincide share that *frame*.
+
+A frame is a crop around all of its objects' regions (``construct.views``). In it, rendered once:
+
+- the capture G0 with the removed Gaussians' indicator as a feature: their composited weight
+  is the *region* (≥ ``region_weight``, grown by ``region_dilate_px``) — every removed object's,
+  so one object's target never shows another removed object (the composite target);
+- the kept Gaussians, as three layers around the new disks (``kernels.fill``: front, slab,
+  back; ``split_layers``), which compose the kept render;
+- the initial disks: where they are opaque and the kept surface lies behind them (seen through
+  the hole), or where the kept render is not opaque, the region is a *hole*.
+
+Target = the kept render with the hole inpainted by OpenCV (Telea or Navier–Stokes, per
+channel in float). Region pixels the kept scene already explains (the tabletop seen behind the
+object from this side) keep their rendered colour. The loss mask is the region grown by
+``loss_ring_px`` (inside the image).
+
+External editor targets (``BackgroundConfig.targets`` = a folder). Per frame, files named by
+the camera's image stem:
+
+    <stem>.png       the edited image: RGB, 8 or 16 bit, the camera's full image size;
+                     only pixels under the mask are used
+    <stem>_mask.png  optional: 8/16-bit, non-zero = fit these pixels (default: our loss mask)
+
+A stem matching a primary view replaces our target there; other stems add frames. The
+folder ``background/targets/`` that a run writes (``write_targets``) has this layout (plus
+``<stem>_hole.png``, the inpainted pixels, and ``targets.json``), so an editor can start
+from it and hand it back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.construct.background.views import (
+    Crop,
+    CropRenderer,
+    cull,
+    make_crop,
+    pass_bucket,
+    screen_radius_bound,
+    view_colours,
+)
+from phirie_jax.errors import SceneInputError
+from phirie_jax.types import Camera, GaussianSplatData
+
+SHARPNESS_CANDIDATES = 5  # views whose blur is measured for the primary choice
+FILL_ALPHA = 0.5          # the initial disks cover a pixel
+DEPTH_MARGIN_SIGMAS = 3.0  # the slab's depth band: the disks' depths ± this many (largest) σ plus one cell
+SH_C0 = 0.28209479177387814
+
+
+@dataclasses.dataclass(frozen=True)
+class PrimaryView:
+    object_id: int
+    view: int
+    pixels: float      # projected fill area, px
+    sharpness: float   # blur factor in (0, 1]
+
+    def as_dict(self, cameras: tuple[Camera, ...]) -> dict:
+        return {"view": self.view, "name": cameras[self.view].name, "pixels": round(self.pixels, 1),
+                "sharpness": round(self.sharpness, 3)}
+
+
+def _image(camera: Camera) -> np.ndarray | None:
+    """The captured image (H, W, 3) float RGB, or None."""
+    import cv2
+
+    if camera.image_path is None or not Path(camera.image_path).is_file():
+        return None
+    img = cv2.imread(str(camera.image_path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.shape[:2] != (camera.height, camera.width):
+        return None
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+    return img[..., 2::-1].astype(np.float32) / scale
+
+
+def _box(uv: np.ndarray, radius: np.ndarray, camera: Camera) -> np.ndarray | None:
+    """Inclusive pixel box of discs (uv, radius) clipped to the image, or None when outside."""
+    lo = np.floor(np.min(uv - radius[:, None], axis=0))
+    hi = np.floor(np.max(uv + radius[:, None], axis=0))
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [camera.width - 1, camera.height - 1])
+    return None if np.any(hi < lo) else np.concatenate([lo, hi]).astype(np.int64)
+
+
+def choose_primary(object_id: int, centres: np.ndarray, normal: np.ndarray, cameras: tuple[Camera, ...],
+                   grid: float) -> PrimaryView | None:
+    """The object's primary view (module docstring), or None when no camera sees its fill."""
+    import cv2
+
+    scored = []
+    for view, cam in enumerate(cameras):
+        uv, z = cam.project(centres)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if not inside.any():
+            continue
+        rays = centres[inside] - cam.center
+        dist = np.linalg.norm(rays, axis=1)
+        cos = np.abs(rays @ normal) / np.maximum(dist, 1e-12)
+        focal = float(np.sqrt(abs(np.linalg.det(cam.K[:2, :2]))))
+        area = np.sum((focal * grid) ** 2 * cos * dist / z[inside] ** 3)  # px² per cell, foreshortened
+        scored.append((float(area), view, uv[inside]))
+    if not scored:
+        return None
+    scored.sort(key=lambda s: -s[0])
+    best = scored[:SHARPNESS_CANDIDATES]
+    sharp = []
+    for _, view, uv in best:
+        img = _image(cameras[view])
+        box = _box(uv, np.zeros(len(uv)), cameras[view])
+        if img is None or box is None:
+            sharp.append(np.nan)
+            continue
+        patch = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)[box[1]:box[3] + 1, box[0]:box[2] + 1]
+        sharp.append(float(cv2.Laplacian(patch, cv2.CV_32F).var()) if patch.size >= 9 else np.nan)
+    sharp = np.asarray(sharp)
+    med = np.nanmedian(sharp) if np.isfinite(sharp).any() else np.nan
+    factor = np.where(np.isfinite(sharp) & (med > 0), np.minimum(1.0, sharp / max(med, 1e-12)), 1.0)
+    k = int(np.argmax([s[0] * f for s, f in zip(best, factor)]))
+    return PrimaryView(object_id, best[k][1], best[k][0], float(factor[k]))
+
+
+@dataclasses.dataclass
+class Frame:
+    """One target crop and everything the fit needs from it."""
+
+    view: int
+    crop: Crop
+    objects: list[int]
+    region: np.ndarray       # (C, C) bool
+    hole: np.ndarray         # (C, C) bool: inpainted pixels
+    mask: np.ndarray         # (C, C) float32 loss weights (inside ``reach``)
+    kept_rgb: np.ndarray     # (C, C, 3) the kept scene, rendered
+    target: np.ndarray       # (C, C, 3)
+    front_rgb: np.ndarray    # (C, C, 3)
+    front_trans: np.ndarray  # (C, C)
+    back_rgb: np.ndarray     # (C, C, 3)
+    reach: np.ndarray        # (C, C) bool: pixels the frame's own disks can touch
+    slab: GaussianSplatData  # kept Gaussians of the disks' depth band touching ``reach``, colour baked (SH DC)
+    source: str              # "telea" | "ns" | "external"
+
+    def record(self, cameras: tuple[Camera, ...]) -> dict:
+        return {"view": self.view, "name": cameras[self.view].name, "objects": self.objects,
+                "crop": {"origin": list(self.crop.origin), "size": self.crop.size, "scale": round(self.crop.scale, 4)},
+                "region_px": int(self.region.sum()), "hole_px": int(self.hole.sum()),
+                "loss_px": int((self.mask > 0).sum()), "slab_gaussians": self.slab.num, "source": self.source}
+
+
+def inpaint(image: np.ndarray, hole: np.ndarray, method: str, radius: int) -> np.ndarray:
+    """(H, W, 3) float image in [0, 1] with the ``hole`` (H, W) bool pixels filled by OpenCV.
+
+    Per channel at 16 bits: OpenCV's Telea returns garbage for float32 input (measured with
+    OpenCV 4.x: values far outside the input range), and 8 bits would quantize the target.
+    Pixels outside the hole are returned unchanged.
+    """
+    import cv2
+
+    image = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
+    if not hole.any():
+        return image.copy()
+    flag = cv2.INPAINT_TELEA if method == "telea" else cv2.INPAINT_NS
+    m = hole.astype(np.uint8) * 255
+    channels = [cv2.inpaint(np.round(image[..., c] * 65535).astype(np.uint16), m, radius, flag)
+                for c in range(3)]
+    filled = np.stack(channels, axis=-1).astype(np.float32) / 65535.0
+    return np.where(hole[..., None], filled, image)
+
+
+def read_external(folder: Path, camera: Camera) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """An editor's target (H, W, 3) float and mask (H, W) bool or None for this camera, or None."""
+    import cv2
+
+    stem = Path(camera.name).stem
+    path = folder / f"{stem}.png"
+    if not path.is_file():
+        return None
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 3 or img.shape[:2] != (camera.height, camera.width):
+        raise SceneInputError(path, "image", f"expected an RGB image of {camera.width}×{camera.height} "
+                              f"(camera {camera.name}), got {None if img is None else img.shape}")
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+    target = img[..., 2::-1].astype(np.float32) / scale
+    mask_path = folder / f"{stem}_mask.png"
+    mask = None
+    if mask_path.is_file():
+        m = cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED)
+        if m is None or m.shape[:2] != (camera.height, camera.width):
+            raise SceneInputError(mask_path, "image", f"expected a mask of {camera.width}×{camera.height}")
+        mask = (m if m.ndim == 2 else m[..., 0]) > 0
+    return target, mask
+
+
+def external_views(folder: Path, cameras: tuple[Camera, ...]) -> list[int]:
+    """Camera indices with a target in the editor's folder."""
+    if not folder.is_dir():
+        raise SceneInputError(folder, "targets", "not a folder (expected <image stem>.png files)")
+    return [k for k, cam in enumerate(cameras) if (folder / f"{Path(cam.name).stem}.png").is_file()]
+
+
+def frame_box(camera: Camera, disks: GaussianSplatData, removed: GaussianSplatData) -> np.ndarray | None:
+    """Pixel box of a frame: its objects' disks and removed Gaussians (their 3σ discs)."""
+    parts = [d for d in (disks, removed) if d.num]
+    if not parts:
+        return None
+    uv = np.concatenate([screen_radius_bound(d, camera)[0] for d in parts])
+    z = np.concatenate([screen_radius_bound(d, camera)[1] for d in parts])
+    r = np.concatenate([screen_radius_bound(d, camera)[2] for d in parts])
+    front = z > 0
+    return _box(uv[front], r[front], camera) if front.any() else None
+
+
+def split_layers(data: GaussianSplatData, camera: Camera, kept_idx: np.ndarray, disks: GaussianSplatData,
+                 normals: np.ndarray, slab: float, reach_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kept indices of the front, slab and back layers around the disks in this camera.
+
+    By view depth against the disks' band [min − reach_z, max + reach_z] (the renderer sorts by
+    centre depth, so outside the band the order is exact); inside the band by the signed height
+    over the nearest disk's plane: within ``slab`` is slab, on the camera's side front, else back
+    (a table's underside, a few cm below, is back although its depth is in the band).
+    """
+    from scipy.spatial import cKDTree
+
+    _, z, _ = screen_radius_bound(data.subset(kept_idx), camera)
+    if disks.num == 0:
+        return kept_idx, kept_idx[:0], kept_idx[:0]
+    _, zd, _ = screen_radius_bound(disks, camera)
+    zd = zd[zd > 0]
+    if len(zd) == 0:
+        return kept_idx, kept_idx[:0], kept_idx[:0]
+    lo, hi = float(zd.min()) - reach_z, float(zd.max()) + reach_z
+    in_band = (z >= lo) & (z <= hi)
+    band = kept_idx[in_band]
+    _, nn = cKDTree(disks.means.astype(np.float64)).query(data.means[band].astype(np.float64))
+    centre, normal = disks.means[nn].astype(np.float64), normals[nn]
+    h = np.sum((data.means[band] - centre) * normal, axis=1)
+    side = np.sign(np.sum((camera.center - centre) * normal, axis=1))
+    is_slab = np.abs(h) <= slab
+    is_front = ~is_slab & (h * side > 0)
+    front = np.concatenate([kept_idx[z < lo], band[is_front]])
+    back = np.concatenate([kept_idx[z > hi], band[~is_slab & ~is_front]])
+    return np.sort(front), band[is_slab], np.sort(back)
+
+
+def disk_reach(disks: GaussianSplatData, crop: Crop, max_sigma: float, max_offset: float) -> np.ndarray:
+    """(C, C) bool: crop pixels a disk can touch while it is fitted (its largest σ, moved by its
+    largest offset): a disc of the kernel's radius bound around each projected centre."""
+    import cv2
+
+    grown = dataclasses.replace(disks, log_scales=np.full_like(disks.log_scales, np.log(max_sigma)))
+    uv, z, r = screen_radius_bound(grown, crop.camera)
+    focal = float(max(abs(crop.camera.K[0, 0]), abs(crop.camera.K[1, 1])))
+    r = r + focal * max_offset / np.maximum(z, 1e-6)
+    canvas = np.zeros((crop.size, crop.size), np.uint8)
+    for (x, y), rad in zip(uv[z > 0], r[z > 0]):
+        if -rad <= x <= crop.size + rad and -rad <= y <= crop.size + rad:
+            cv2.circle(canvas, (int(round(x)), int(round(y))), int(np.ceil(rad)) + 1, 1, -1)
+    return canvas.astype(bool)
+
+
+def touching(data: GaussianSplatData, crop: Crop, reach: np.ndarray) -> np.ndarray:
+    """(N,) bool: the Gaussian's radius bound meets a reachable pixel (a superset)."""
+    if not reach.any() or data.num == 0:
+        return np.zeros(data.num, bool)
+    uv, z, r = screen_radius_bound(data, crop.camera)
+    dist = ndimage.distance_transform_edt(~reach)
+    px = np.clip(np.floor(uv), 0, crop.size - 1)
+    off = np.linalg.norm(uv - (px + 0.5), axis=1)  # from the centre to the nearest crop pixel centre
+    d = dist[px[:, 1].astype(np.int64), px[:, 0].astype(np.int64)]
+    return (z > 0) & (d - off <= r + 1.0)
+
+
+def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: GaussianSplatData, disk_normals: np.ndarray,
+                own: np.ndarray, crop: Crop, objects: list[int], camera_full: Camera, background: np.ndarray,
+                config: BackgroundConfig, crops: CropRenderer, pad: int,
+                external: tuple[np.ndarray, np.ndarray | None] | None) -> Frame:
+    """Renders, region, hole, target and layers of one frame (module docstring).
+
+    own: (N,) bool, the disks of the frame's objects: the frame's loss covers the pixels they can
+    reach, and the fit renders there every disk and kept slab Gaussian that can touch them.
+    """
+    cam = crop.camera
+    idx = cull(data, cam)
+    kept = idx[~removed[idx]]
+    here = cull(all_disks, cam)
+    disks_here = all_disks.subset(here)
+    reach_z = DEPTH_MARGIN_SIGMAS * config.max_disk_sigma * config.grid + config.grid
+    front, slab, back = split_layers(data, cam, kept, disks_here, disk_normals[here], config.slab, reach_z)
+    zeros = np.zeros(3, np.float32)
+    full = crops.render(data.subset(idx), crop, pad, features=removed[idx, None].astype(np.float32))
+    r_front = crops.render(data.subset(front), crop, pad, background=zeros)
+    r_back = crops.render(data.subset(back), crop, pad, background=background)
+    slab_data = data.subset(slab)
+    baked = dataclasses.replace(slab_data, sh=((view_colours(slab_data, cam) - 0.5) / SH_C0)
+                                .astype(np.float32)[:, None, :], extra={}, layout=())
+    r_slab = crops.render(baked, crop, pad, background=zeros)
+    r_disks = crops.render(disks_here, crop, max(pad, pass_bucket([disks_here.num])), background=zeros)
+
+    f_rgb, f_t = np.asarray(r_front.rgb), 1.0 - np.asarray(r_front.alpha)
+    s_rgb, s_t = np.asarray(r_slab.rgb), 1.0 - np.asarray(r_slab.alpha)
+    b_rgb = np.asarray(r_back.rgb)
+    kept_rgb = f_rgb + f_t[..., None] * (s_rgb + s_t[..., None] * b_rgb)
+    kept_alpha = 1.0 - f_t * s_t * (1.0 - np.asarray(r_back.alpha))
+    # expected depth of the kept layers, composited front to back (the renderer's Σ wᵢ zᵢ per layer)
+    kept_depth_sum = np.asarray(r_front.depth) + f_t * (np.asarray(r_slab.depth) + s_t * np.asarray(r_back.depth))
+    kept_depth = np.where(kept_alpha > 0, kept_depth_sum / np.maximum(kept_alpha, 1e-10), np.inf)
+
+    region = np.asarray(full.features)[..., 0] >= config.region_weight
+    if config.region_dilate_px > 0:
+        region = ndimage.binary_dilation(region, iterations=config.region_dilate_px)
+    region &= crop.inside
+    on_disks = np.asarray(r_disks.alpha) >= FILL_ALPHA
+    see_through = kept_depth > np.asarray(r_disks.depth_normalized) + config.plane_depth_tolerance
+    # only where new disks will be can the target differ from the kept render
+    hole = region & on_disks & ((kept_alpha < config.explained_alpha) | see_through)
+    mask = ndimage.binary_dilation(region, iterations=config.loss_ring_px) if config.loss_ring_px > 0 else region
+    mask = mask & crop.inside
+    if external is not None:
+        target_full, mask_full = external
+        target = crop.sample(target_full, camera_full.width, camera_full.height).astype(np.float32)
+        if mask_full is not None:
+            mask = crop.sample(mask_full, camera_full.width, camera_full.height).astype(bool) & crop.inside
+        source = "external"
+    else:
+        target = inpaint(kept_rgb.astype(np.float32), hole, config.inpaint, config.inpaint_radius)
+        source = config.inpaint
+    own_here = all_disks.subset(np.flatnonzero(own))
+    reach = disk_reach(own_here, crop, config.max_disk_sigma * config.grid, config.grid) if own_here.num \
+        else np.zeros((crop.size, crop.size), bool)
+    mask = mask & reach  # elsewhere the frame is the kept render: a constant of the loss
+    near = touching(baked, crop, reach)
+    return Frame(crop.view, crop, objects, region, hole, mask.astype(np.float32), kept_rgb.astype(np.float32),
+                 target.astype(np.float32), f_rgb.astype(np.float32), f_t.astype(np.float32),
+                 b_rgb.astype(np.float32), reach, baked.subset(near), source)
+
+
+def frame_crop(view: int, camera: Camera, disks: GaussianSplatData, removed: GaussianSplatData,
+               config: BackgroundConfig) -> Crop | None:
+    box = frame_box(camera, disks, removed)
+    if box is None:
+        return None
+    margin = config.crop_margin_px + config.loss_ring_px + config.region_dilate_px
+    return make_crop(camera, view, box, config.crop_sizes, margin)
+
+
+def write_targets(folder: Path, frames: list[Frame], cameras: tuple[Camera, ...]) -> list[str]:
+    """Full-frame target, loss mask and hole PNGs per view (the editor format; crops of one view are
+    pasted into one image); returns the file names."""
+    import cv2
+
+    from phirie_jax.io.atomic import write_bytes
+
+    written = []
+    for view in sorted({f.view for f in frames}):
+        cam = cameras[view]
+        base = _image(cam)
+        full = np.zeros((cam.height, cam.width, 3), np.float32) if base is None else base.copy()
+        mask_full = np.zeros((cam.height, cam.width), np.uint8)
+        hole_full = np.zeros((cam.height, cam.width), np.uint8)
+        for f in (f for f in frames if f.view == view):
+            rows, cols = f.crop.full_pixels()
+            ok = f.crop.inside & (f.mask > 0)
+            full[rows[ok], cols[ok]] = f.target[ok]
+            mask_full[rows[ok], cols[ok]] = 255
+            hole_full[rows[ok & f.hole], cols[ok & f.hole]] = 255
+        stem = Path(cam.name).stem
+        for name, img in ((f"{stem}.png", np.round(full[..., ::-1] * 255).astype(np.uint8)),
+                          (f"{stem}_mask.png", mask_full), (f"{stem}_hole.png", hole_full)):
+            ok_enc, buf = cv2.imencode(".png", img)
+            if not ok_enc:
+                raise RuntimeError(f"PNG encoding failed for {folder / name}")
+            write_bytes(folder / name, buf.tobytes())
+            written.append(name)
+    return written

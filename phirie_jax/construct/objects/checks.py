@@ -1,0 +1,86 @@
+"""Per-candidate checks and the lexicographic ranking (the paper's selection).
+
+A check table is ``{name: {"value", "threshold", "passed", ...}}`` — the manifest's
+``checks`` (DESIGN.md "Contracts"). ``passed`` is True, False, or None for a check that
+has not run: the settling check needs the physics stage's drop test, which fills in
+``value``/``passed`` later and re-ranks with ``rank`` (nothing here fakes it).
+
+Ranking key (paper): all checks satisfied, number of failed checks, registration
+residual, scale discrepancy, settling displacement (not run ranks after any measured
+value), then a deterministic tie-break (pool priority, then name). A check that has not
+run neither satisfies nor fails.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from phirie_jax.construct.objects.config import ObjectsConfig
+
+CHECKS = ("registration", "scale", "support", "collision", "settling")
+SETTLING_NOT_RUN = "no drop test yet: the physics stage runs it and fills this check in"
+
+
+def check(value, threshold, passed, **extra) -> dict:
+    return {"value": value, "threshold": threshold, "passed": passed, **extra}
+
+
+def hull_volume(vertices: np.ndarray) -> float:
+    """Volume of the convex hull (0 for a flat or degenerate point set)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return float(ConvexHull(np.asarray(vertices, np.float64)).volume)
+    except (QhullError, ValueError):
+        return 0.0
+
+
+def candidate_checks(scores: dict, canonical_hull_volume: float, config: ObjectsConfig) -> dict:
+    """The check table of one registered hypothesis (``Hypothesis.scores()``)."""
+    energy, support, scale, s0 = scores["energy"], scores["support"], scores["scale"], scores["scale_init"]
+    discrepancy = abs(math.log(scale / s0)) if scale > 0 and s0 > 0 else math.inf
+    volume = canonical_hull_volume * scale**3
+    return {
+        "registration": check(energy, config.max_residual, bool(energy <= config.max_residual)),
+        "scale": check(discrepancy, config.max_scale_discrepancy,
+                       bool(discrepancy <= config.max_scale_discrepancy)),
+        "support": check(support, config.min_support, bool(support >= config.min_support)),
+        "collision": check(volume, config.min_hull_volume, bool(math.isfinite(volume) and volume >= config.min_hull_volume),
+                           method="convex hull (stand-in until the physics stage's convex decomposition)"),
+        "settling": check(None, config.settle_threshold, None, status="not_run", reason=SETTLING_NOT_RUN),
+    }
+
+
+def failed(checks: dict) -> list[str]:
+    """Names of the checks that ran and failed."""
+    return [name for name, c in checks.items() if c.get("passed") is False]
+
+
+def not_run(checks: dict) -> list[str]:
+    return [name for name, c in checks.items() if c.get("passed") is None]
+
+
+def _number(value, missing: float = math.inf) -> float:
+    return missing if value is None or not math.isfinite(float(value)) else float(value)
+
+
+def rank_key(entry: dict) -> tuple:
+    """Sort key of a candidate record (``checks``, ``priority``, ``name``); lower is better."""
+    checks = entry["checks"]
+    bad = failed(checks)
+    return (len(bad) > 0, len(bad), _number(checks["registration"]["value"]), _number(checks["scale"]["value"]),
+            _number(checks.get("settling", {}).get("value")), entry.get("priority", 0), entry["name"])
+
+
+def rank(entries: list[dict]) -> list[dict]:
+    """Valid candidates (those with a check table), best first."""
+    return sorted((e for e in entries if e.get("checks")), key=rank_key)
+
+
+def first_by_priority(entries: list[dict]) -> dict | None:
+    """The fixed-priority baseline: the first valid candidate in pool order whose checks all
+    pass, else the first valid one."""
+    valid = sorted((e for e in entries if e.get("checks")), key=lambda e: (e.get("priority", 0), e["name"]))
+    return next((e for e in valid if not failed(e["checks"])), valid[0] if valid else None)

@@ -1,0 +1,158 @@
+"""Object construction's config: frozen dataclasses whose defaults are the φ-RIE paper's numbers.
+
+Where the paper gives a number it is the default and the field says so ("paper");
+every other default is ours and the field says why. Lengths are metres, angles degrees.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistrationConfig:
+    """Batched Sim(3) registration of a candidate shape to an instance's observed points Q_i.
+
+    Attributes:
+        points: points sampled on the candidate mesh, P (paper: 20K). Every candidate has
+            exactly this many, so it is one static shape.
+        num_yaws: yaws per up axis (paper: 36, i.e. 10° steps).
+        tau: clip distance of E_i(S) and of the observation-support check (paper: 3 cm).
+        scale_multipliers: ours — multipliers of the robust-extent scale init tried in the sweep.
+        top_k: ours — best sweep hypotheses per refined up axis (ICP, then scale).
+        refine_other_axes: ours — besides the candidate's own up (+z), the refinement runs on the
+            axes with the lowest sweep score, this many of them. On the development scene the
+            true axis had the lowest sweep score of all six in 24/24 random frames; 2 keeps a
+            margin and halves the refinement work of refining all six (5).
+        sweep_model_points / sweep_obs_points: ours — the sweep scores every hypothesis on these
+            many leading (random) points of P and Q; refined hypotheses are rescored on all of
+            them. Measured in ``experiments/bench_register.py``.
+        icp_model_points / icp_obs_points: ours — points matched in ICP and scale refinement.
+        score_obs_points: ours — at most this many points of Q in the final scores (a random
+            subset; the mean of clipped distances moves by well under 0.1 mm beyond it).
+        icp_iterations / scale_iterations: ours — fixed iteration counts.
+        icp_max_correspondence: ours — ICP ignores matches farther than this (2τ).
+        rotation: ours — "full" (3D Kabsch) or "yaw" (rotation about up only) in ICP.
+        chunk: queries per brute-force nearest-neighbour block (static).
+        hypothesis_batch: hypotheses vmapped together (static; memory ∝ batch · chunk · points).
+            None: 36 on a CPU, all of them on a GPU (measured: the whole search takes 7 ms on an
+            H100 with all 648 together).
+        min_obs_bucket: Q is padded to the next power of two, at least this (static buckets).
+        batched_retry: ours — True scores all six up axes in the first (and only) kernel call, so
+            the retry is a host-side choice; False searches +z first and calls the kernel again
+            with the other five axes only for candidates whose checks fail. Measured
+            (``experiments/bench_register.py``): on an H100 the six-axis call takes as long as the
+            +z one (7 ms), so the retry is free; on the 2-core CPU it costs 3.1× the +z call
+            (lazy: 1× when +z passes, 3.4× when it does not).
+        seed: sampling seed (P on the mesh, subsets of Q).
+    """
+
+    points: int = 20_000
+    num_yaws: int = 36
+    tau: float = 0.03
+    scale_multipliers: tuple[float, ...] = (0.85, 1.0, 1.15)
+    top_k: int = 1
+    refine_other_axes: int = 2
+    sweep_model_points: int = 512
+    sweep_obs_points: int = 512
+    icp_model_points: int = 2048
+    icp_obs_points: int = 2048
+    score_obs_points: int = 4096
+    icp_iterations: int = 20
+    scale_iterations: int = 10
+    icp_max_correspondence: float = 0.06
+    rotation: str = "full"
+    chunk: int = 256
+    hypothesis_batch: int | None = None
+    min_obs_bucket: int = 256
+    batched_retry: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.rotation not in ("full", "yaw"):
+            raise ValueError(f"registration rotation {self.rotation!r} (expected 'full' or 'yaw')")
+        if min(self.sweep_model_points, self.icp_model_points) > self.points:
+            raise ValueError("registration: sweep/ICP subsets cannot exceed the sampled points")
+        if self.num_yaws < 1 or self.top_k < 1 or not self.scale_multipliers:
+            raise ValueError("registration: need num_yaws ≥ 1, top_k ≥ 1 and a scale multiplier")
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectsConfig:
+    """Object construction: candidates → registration → checks → selection → assets.
+
+    Attributes:
+        generators: the candidate pool in priority order (the order is the fixed-priority
+            baseline and the last tie-break): "external" (every mesh in candidates/<id>/, by
+            name), "external:<name>" (one of them), "visual_hull", "primitive", "extrude".
+        selection: "evidence" (rank every candidate lexicographically on its checks, the paper's
+            default) or "priority" (the first candidate, in pool order, whose checks all pass;
+            else the first numerically valid one).
+        retry: the bounded retry — a candidate whose checks fail with its own up (+z) is tried
+            with the 5 other signed up axes (paper).
+        strict: reject an object whose chosen candidate has a failed check (``--strict``); by
+            default it is kept and the failed checks are recorded.
+        min_points: an instance with fewer observed points fails ("too few points").
+        max_residual: registration check, E_i(S) in metres (ours, from the development seeds:
+            ground-truth shapes score 4–7 mm, wrong up axes and wrong shapes ≥ 10 mm).
+        max_scale_discrepancy: scale check, |ln(s / s_init)| between the registered scale and the
+            robust-extent init of its axis (ours).
+        min_support: observation support check: fraction of Q within τ of the asset (ours).
+        min_hull_volume: collision check (convex-hull stand-in until the physics stage's convex
+            decomposition): the hull must be a valid solid of at least this volume, m³.
+        settle_threshold: settling check: drift from the drop test (paper: 3 cm). Filled in by
+            the physics stage; until then recorded as not run.
+        snap_to_support: ours — after registration, move the asset vertically so its lowest point
+            is on the support plane when it is within τ of it.
+        hull_resolution: voxels along each side of the visual hull's carving grid (static shape);
+            the voxel edge is the carving box's longest side over this.
+        hull_margin: the carving box is Q's robust box grown on each side by this plus a fifth of
+            its horizontal extent (room for the parts the observation missed).
+        hull_dilate_px: the instance's mask is dilated by this many pixels before carving. 0: the
+            synthetic scenes' rendered masks measured 1–2 px wider than the projected mesh already
+            (each extra pixel grew the hull's volume by a further 15–25 %).
+        hull_max_misses: a voxel survives this many views that see background where it projects.
+        extrude_cell: footprint/heightfield cell of the extruded generator.
+        mesh_smooth: Gaussian smoothing (in voxels) of an occupancy grid before meshing.
+        gaussian_radius: captured Gaussians within this of Q_i and of the placed mesh belong
+            to the object's appearance.
+        base_clearance: captured Gaussians lower than this above the support are the support's.
+        fill_spacing: spacing of new Gaussians on mesh regions the capture never saw.
+        fill_min_distance: mesh points farther than this from every kept Gaussian are unseen.
+        colour_neighbours: new Gaussians take the mean colour of this many nearest kept ones.
+        registration: the registration kernel's settings.
+    """
+
+    generators: tuple[str, ...] = ("external", "visual_hull", "extrude", "primitive")
+    selection: str = "evidence"
+    retry: bool = True
+    strict: bool = False
+    min_points: int = 50
+    max_residual: float = 0.010
+    max_scale_discrepancy: float = 0.15
+    min_support: float = 0.9
+    min_hull_volume: float = 1e-7
+    settle_threshold: float = 0.03
+    snap_to_support: bool = True
+    hull_resolution: int = 64
+    hull_margin: float = 0.03
+    hull_dilate_px: int = 0
+    hull_max_misses: int = 0
+    extrude_cell: float = 0.004
+    mesh_smooth: float = 0.8
+    gaussian_radius: float = 0.01
+    base_clearance: float = 0.003
+    fill_spacing: float = 0.004
+    fill_min_distance: float = 0.008
+    colour_neighbours: int = 8
+    registration: RegistrationConfig = RegistrationConfig()
+
+    def __post_init__(self):
+        if self.selection not in ("evidence", "priority"):
+            raise ValueError(f"objects selection {self.selection!r} (expected 'evidence' or 'priority')")
+        known = ("external", "visual_hull", "primitive", "extrude")
+        for g in self.generators:
+            if g not in known and not g.startswith("external:"):
+                raise ValueError(f"objects generator {g!r} (expected one of {known} or 'external:<name>')")
+        if not self.generators:
+            raise ValueError("objects: the candidate pool (generators) is empty")

@@ -1,0 +1,271 @@
+"""Drop tests (the paper's protocol) of bodies made of convex parts, in MJX or MuJoCo C.
+
+Protocol (``DropTestConfig``): each body alone on a plane, 240 Hz; spawned in its registered
+orientation with its lowest collision point on the plane; 2 s with velocities zeroed after
+every step, then 2 s free. Stable if its centre of mass ends < 3 cm from where it was spawned
+and no lower than −5 cm relative to the plane.
+
+Both backends simulate the same compiled MuJoCo models (``build_model``): a plane, one free
+body with an explicit inertial (our uniform-density mass properties) and its convex parts
+padded to the part bucket with ghost parts. "mujoco" steps each model with the C library,
+one after another (the reference); "mjx" runs a whole bucket as one vmapped program
+(``interact.mjx_batch``).
+
+The construction stage's settling check calls ``drop_test_meshes`` (one convex hull per
+candidate, every candidate in one batch) and ``settling_check`` (a check-table row).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from phirie_jax.construct.physics.collision import ConvexPart, MeshError, ghost_part, hull_part
+from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
+from phirie_jax.construct.physics.priors import MassProperties, Priors, mass_properties, priors
+
+PLANE_HALF_SIZE = 5.0     # m; the plane is infinite for collisions, this is only its drawn size
+
+
+@dataclasses.dataclass(frozen=True)
+class DropBody:
+    """One body to drop: convex parts in its body frame and its spawn orientation."""
+
+    parts: tuple[ConvexPart, ...]   # body frame (canonical mesh frame, scale applied), metres
+    mass: MassProperties            # body frame
+    rotation: np.ndarray            # (3, 3) body → gravity frame (up = +z) at spawn
+    priors: Priors
+
+
+@dataclasses.dataclass(frozen=True)
+class DropResult:
+    stable: bool | None
+    drift_m: float | None           # |centre of mass at the end − at spawn|
+    final_height_m: float | None    # centre of mass above the plane at the end
+    settle_drift_m: float | None    # |centre of mass after settling − at spawn|
+    tilt_deg: float | None          # rotation between spawn and end
+    backend: str
+    error: str | None = None
+
+    def record(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def rotation_to_z(up) -> np.ndarray:
+    """(3, 3) the smallest rotation taking ``up`` to +z."""
+    up = np.asarray(up, np.float64)
+    up = up / np.linalg.norm(up)
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
+    return rot.as_matrix()
+
+
+def split_pose(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """A 4×4 Sim(3) → (scale, (3, 3) rotation, (3,) translation); ``ValueError`` otherwise."""
+    pose = np.asarray(pose, np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise ValueError("pose: expected a finite 4×4 matrix")
+    block = pose[:3, :3]
+    det = float(np.linalg.det(block))
+    if det <= 0:
+        raise ValueError(f"pose: rotation block has determinant {det:.3g} (expected a positive similarity)")
+    scale = det ** (1.0 / 3.0)
+    rot = block / scale
+    if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4):
+        raise ValueError("pose: rotation block is not a uniform scale times a rotation")
+    u, _, vt = np.linalg.svd(rot)
+    return scale, u @ vt, pose[:3, 3].copy()
+
+
+def body_from_parts(parts: Sequence[ConvexPart], pose: np.ndarray, up=(0.0, 0.0, 1.0),
+                    body_priors: Priors | None = None) -> DropBody:
+    """A drop body from canonical-frame parts placed by a Sim(3) ``pose`` in a scene whose up is ``up``."""
+    body_priors = body_priors or priors(None)
+    scale, rot, _ = split_pose(pose)
+    scaled = tuple(ConvexPart(scale * p.vertices, p.faces) for p in parts)
+    return DropBody(scaled, mass_properties(scaled, body_priors.mass), rotation_to_z(up) @ rot, body_priors)
+
+
+def part_bucket(parts: int, config: DropTestConfig) -> int:
+    for bucket in config.part_buckets:
+        if parts <= bucket:
+            return bucket
+    raise ValueError(f"{parts} convex parts (more than the largest part bucket {config.part_buckets[-1]})")
+
+
+def build_model(body: DropBody, bucket: int, config: DropTestConfig) -> mujoco.MjModel:
+    """The compiled drop-test model of ``body``: plane + one free body with ``bucket`` mesh parts."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "phirie_droptest"
+    opt = spec.option
+    opt.timestep = config.timestep
+    opt.iterations = config.solver_iterations
+    opt.ls_iterations = config.line_search_iterations
+    opt.tolerance = config.tolerance
+    opt.solver = mujoco.mjtSolver.mjSOL_CG if config.solver == "cg" else mujoco.mjtSolver.mjSOL_NEWTON
+    opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE if config.jacobian == "sparse" else mujoco.mjtJacobian.mjJAC_DENSE
+    # the body's priors govern its contact with the plane: MuJoCo takes the larger friction of a
+    # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
+    spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
+                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
+    b = spec.worldbody.add_body(name="body")
+    b.add_freejoint()
+    m = body.mass
+    b.explicitinertial = True
+    b.mass = m.mass
+    b.ipos = m.com
+    i = m.inertia
+    b.fullinertia = [i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]
+    pr = body.priors
+    parts = list(body.parts) + [ghost_part(body.parts[0])] * (bucket - len(body.parts))
+    for k, part in enumerate(parts):
+        mesh = spec.add_mesh(name=f"part_{k}")
+        mesh.uservert = part.vertices.ravel()
+        b.add_geom(name=f"part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"part_{k}",
+                   friction=[pr.friction, 0.005, 0.0001], solref=list(pr.solref), solimp=list(pr.solimp))
+    return spec.compile()
+
+
+def spawn_qpos(body: DropBody) -> np.ndarray:
+    """(7,) free-joint qpos: spawn orientation, lowest point of the parts exactly on the plane."""
+    lowest = min(float((p.vertices @ body.rotation.T)[:, 2].min()) for p in body.parts)
+    quat = Rotation.from_matrix(body.rotation).as_quat(scalar_first=True)
+    return np.concatenate([[0.0, 0.0, -lowest], quat])
+
+
+@functools.lru_cache(maxsize=8)
+def bucket_template(bucket: int, config: DropTestConfig):
+    """(MjModel, (mjx.Model, mjx.Data)) of a canonical body of ``bucket`` parts: the shape every
+    candidate of the bucket is batched into (its values are replaced per candidate)."""
+    from mujoco import mjx
+
+    cube = hull_part(np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * 0.1)
+    canonical = DropBody((cube,), mass_properties((cube,), 1.0), np.eye(3), priors(None))
+    model = build_model(canonical, bucket, config)
+    mx = mjx.put_model(model)
+    return model, (mx, mjx.make_data(mx))
+
+
+def run_reference(model: mujoco.MjModel, qpos0: np.ndarray, config: DropTestConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The protocol with the MuJoCo C library: qpos after settling and at the end."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos0
+    for _ in range(config.settle_steps):
+        mujoco.mj_step(model, data)
+        data.qvel[:] = 0.0
+    settled = data.qpos.copy()
+    if config.free_steps:
+        mujoco.mj_step(model, data, nstep=config.free_steps)
+    return settled, data.qpos.copy()
+
+
+def _com(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+    """World centre of mass of the free body at ``qpos``; NaN where the state diverged."""
+    quat = np.asarray(qpos[3:7], np.float64)
+    if not (np.isfinite(qpos).all() and np.linalg.norm(quat) > 1e-9):
+        return np.full(3, np.nan)
+    rot = Rotation.from_quat(quat / np.linalg.norm(quat), scalar_first=True).as_matrix()
+    return qpos[:3] + rot @ model.body_ipos[1]
+
+
+def _tilt_deg(q0: np.ndarray, q1: np.ndarray) -> float:
+    r0 = Rotation.from_quat(q0 / np.linalg.norm(q0), scalar_first=True)
+    r1 = Rotation.from_quat(q1 / np.linalg.norm(q1), scalar_first=True)
+    return float(np.degrees((r1 * r0.inv()).magnitude()))
+
+
+def verdict(model: mujoco.MjModel, qpos0, settled, final, config: DropTestConfig, backend: str) -> DropResult:
+    com0, com_s, com_f = (_com(model, q) for q in (qpos0, settled, final))
+    if not (np.isfinite(com_f).all() and np.isfinite(com_s).all()):
+        return DropResult(False, None, None, None, None, backend, "simulation diverged (non-finite state)")
+    drift = float(np.linalg.norm(com_f - com0))
+    height = float(com_f[2])
+    stable = drift < config.max_drift and height >= config.min_final_height
+    return DropResult(bool(stable), drift, height, float(np.linalg.norm(com_s - com0)),
+                      _tilt_deg(qpos0[3:7], final[3:7]), backend)
+
+
+def resolve_backend(backend: str) -> str:
+    """"auto" → "mjx" when JAX has an accelerator, else "mujoco" (measured faster on a CPU)."""
+    if backend != "auto":
+        return backend
+    import jax
+
+    return "mjx" if jax.default_backend() != "cpu" else "mujoco"
+
+
+def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfig(),
+              backend: str | None = None) -> list[DropResult]:
+    """Drop-test every body; MJX runs each part bucket as one batched program."""
+    backend = resolve_backend(backend or config.backend)
+    results: list[DropResult | None] = [None] * len(bodies)
+    groups: dict[int, list[int]] = {}
+    models: dict[int, mujoco.MjModel] = {}
+    qpos0: dict[int, np.ndarray] = {}
+    for k, body in enumerate(bodies):
+        try:
+            bucket = part_bucket(len(body.parts), config)
+            models[k], qpos0[k] = build_model(body, bucket, config), spawn_qpos(body)
+            groups.setdefault(bucket, []).append(k)
+        except (ValueError, MeshError) as err:
+            results[k] = DropResult(None, None, None, None, None, backend, f"{type(err).__name__}: {err}")
+    for bucket, members in groups.items():
+        if backend == "mjx":
+            from phirie_jax.construct.physics import mjx_batch
+
+            template_model, template = bucket_template(bucket, config)
+            settled, final = mjx_batch.run(template_model, template, [models[k] for k in members],
+                                           np.stack([qpos0[k] for k in members]), config)
+        else:
+            runs = [run_reference(models[k], qpos0[k], config) for k in members]
+            settled, final = np.stack([r[0] for r in runs]), np.stack([r[1] for r in runs])
+        for row, k in enumerate(members):
+            results[k] = verdict(models[k], qpos0[k], settled[row], final[row], config, backend)
+    return results  # type: ignore[return-value]
+
+
+def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Sequence[np.ndarray],
+                     up=(0.0, 0.0, 1.0), categories: Sequence[str | None] | None = None,
+                     config: PhysicsConfig = PhysicsConfig(), backend: str | None = None) -> list[DropResult]:
+    """Drop-test candidate placements with the fast single-hull stand-in, all in one batch.
+
+    Args:
+        meshes: (vertices (N, 3), faces (M, 3)) of each candidate in its own frame.
+        poses: (4, 4) Sim(3) of each candidate, its frame → scene (scale included).
+        up: the scene's up direction (gravity is −up).
+        categories: per-candidate category for the mass prior (default: the config's mass).
+        config: physics priors and the drop test's settings.
+        backend: "mjx", "mujoco" or "auto" (default ``config.drop_test.backend``).
+
+    A candidate whose hull is empty or flat, or whose pose is not a similarity, gets a result
+    with ``error`` set; the others are unaffected.
+    """
+    bodies, index, results = [], [], [None] * len(meshes)
+    backend = resolve_backend(backend or config.drop_test.backend)
+    for k, ((vertices, _faces), pose) in enumerate(zip(meshes, poses, strict=True)):
+        try:
+            part = hull_part(vertices, config.max_hull_vertices)
+            cat = None if categories is None else categories[k]
+            bodies.append(body_from_parts((part,), pose, up, priors(cat, config)))
+            index.append(k)
+        except (ValueError, MeshError) as err:
+            results[k] = DropResult(None, None, None, None, None, backend, f"{type(err).__name__}: {err}")
+    for k, result in zip(index, drop_test(bodies, config.drop_test, backend)):
+        results[k] = result
+    return results  # type: ignore[return-value]
+
+
+def settling_check(result: DropResult, config: DropTestConfig = DropTestConfig(), method: str = "") -> dict:
+    """A check-table row ({value, threshold, passed, ...}) for the construction stage's settling check."""
+    row = {"value": result.drift_m, "threshold": config.max_drift, "passed": result.stable,
+           "final_height_m": result.final_height_m, "min_final_height": config.min_final_height,
+           "backend": result.backend, "status": "run"}
+    if method:
+        row["method"] = method
+    if result.error:
+        row.update(passed=False, status="failed", reason=result.error)
+    return row

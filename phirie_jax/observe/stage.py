@@ -1,0 +1,280 @@
+"""Scene Observation, end to end: ``run_observe(scene_dir, out_dir, config, masks)``.
+
+Outputs (paths relative to ``out_dir``):
+
+- ``manifest.json``: ``instances`` (DESIGN.md "Contracts": ``id``, ``category``, ``views``
+  = supporting camera indices, ``num_points``, ``bounds``, ``source``; plus ``points``,
+  ``confidence``, ``view_names``), ``observe`` (surface used and how it was made, mask
+  source, failed views, rejected proposals and clusters, the config) and
+  ``timings`` (``observe`` and ``observe.<step>`` in seconds).
+- ``observe/instance_<id>.npz``, one per instance:
+  ``points`` (N, 3) float32 observed surface samples Q_i (one per ``points_voxel``; only
+  points whose association voxel is seen by ≥ ``min_views`` of the instance's views),
+  and per supporting proposal (V rows): ``views`` (V,) int32 camera index, ``labels`` (V,)
+  int64 value of the instance in that view's mask, ``mask_paths`` (V,) str mask image,
+  ``pixels`` (V,) int64 mask area, ``bboxes`` (V, 4) int32 x0 y0 x1 y1 (inclusive),
+  ``lifted`` (V,) int32 points lifted from that view.
+- ``observe/masks/<image stem>.png``: the per-view masks when they were made here
+  (``auto``), 16-bit instance ids like mask files.
+- ``observe/surface.ply``: the splat-derived surface, when one was built.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from phirie_jax.errors import SceneInputError
+from phirie_jax.io.atomic import write_bytes
+from phirie_jax.io.scene import load_scene
+from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.observe import auto as auto_mod
+from phirie_jax.observe.associate import associate
+from phirie_jax.observe.config import ObserveConfig
+from phirie_jax.observe.lift import Proposal, lift_view
+from phirie_jax.observe.masks import (
+    ViewFailure,
+    ViewMasks,
+    camera_problem,
+    external_masks,
+    file_masks,
+    projected_masks,
+    scannetpp_vertex_labels,
+)
+from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
+from phirie_jax.types import Camera, SceneInput
+
+
+def render_depths(scene: SceneInput, config: ObserveConfig) -> tuple[list[np.ndarray], list[Camera], list[dict]]:
+    """Rendered depth (alpha ≥ min_alpha, else 0) at every ``view_stride``-th camera, and failures."""
+    from phirie_jax.render import render
+
+    gaussians = scene.require_gaussians().to_kernel()
+    depths, cams, failures = [], [], []
+    for view in range(0, len(scene.cameras), config.surface.view_stride):
+        cam = scene.cameras[view]
+        problem = camera_problem(cam)
+        if problem is None:
+            try:
+                out = render(gaussians, cam)
+            except RuntimeError as err:  # e.g. the scene does not fit the renderer's buffers
+                problem = f"render failed: {err}"
+        if problem:
+            failures.append({"view": view, "path": cam.name, "reason": problem})
+            continue
+        alpha = np.asarray(out.alpha)
+        depths.append(np.where(alpha >= config.surface.min_alpha, np.asarray(out.depth_normalized), 0.0))
+        cams.append(cam)
+    return depths, cams, failures
+
+
+def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tuple[SurfaceMesh, dict]:
+    """The surface to lift onto, and a record of where it came from."""
+    import trimesh
+
+    use_mesh = config.surface_source == "mesh" or (config.surface_source == "auto" and scene.surface_mesh)
+    if use_mesh:
+        if scene.surface_mesh is None:
+            raise SceneInputError(scene.root, "surface", "no scan mesh (expected --surface PATH, surface.ply, "
+                                  "mesh.ply or scans/mesh_aligned_0.05.ply) and surface_source is 'mesh'")
+        try:
+            mesh = trimesh.load(scene.surface_mesh, force="mesh", process=False)
+        except (ValueError, OSError, KeyError, IndexError, TypeError) as err:  # what trimesh raises for bad files
+            raise SceneInputError(scene.surface_mesh, None, f"not a readable mesh ({err})") from None
+        if len(mesh.faces) == 0:
+            raise SceneInputError(scene.surface_mesh, "faces", "none (expected a triangle mesh)")
+        record = {"kind": "scan", "path": str(scene.surface_mesh), "faces": len(mesh.faces)}
+        return SurfaceMesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), record), record
+    if scene.gaussians is None or not scene.cameras:
+        raise SceneInputError(scene.root, "surface", "no scan mesh and no way to build one (a splat-derived "
+                              "surface needs the Gaussians and posed cameras; expected --surface PATH or "
+                              "surface.ply, else point_cloud.ply with sparse/0/ or transforms.json)")
+    t0 = time.perf_counter()
+    depths, cams, failures = render_depths(scene, config)
+    render_s = time.perf_counter() - t0
+    if not depths:
+        raise SceneInputError(scene.root, "surface", "no view could be rendered to build a splat-derived surface")
+    surface = fuse_depths(depths, cams, config.surface)
+    if config.surface.snap_radius > 0:
+        t0 = time.perf_counter()
+        g = scene.gaussians
+        opaque = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64))) >= config.surface.snap_min_opacity
+        vertices, offset = snap_to_centres(surface.vertices, surface.faces, g.means[opaque].astype(np.float64),
+                                           config.surface.snap_radius, config.surface.snap_neighbours)
+        info = {**surface.info, "snap_s": time.perf_counter() - t0,
+                "snap_offset_mm_median": float(np.median(offset) * 1000),
+                "snap_offset_mm_p95_abs": float(np.percentile(np.abs(offset), 95) * 1000)}
+        surface = SurfaceMesh(vertices, surface.faces, info)
+    data = surface.to_trimesh().export(file_type="ply")
+    write_bytes(out_dir / "observe" / "surface.ply", data)
+    record = {"kind": "splats", "path": "observe/surface.ply", "render_s": round(render_s, 4),
+              "failed_views": failures, **{k: (round(v, 4) if isinstance(v, float) else v)
+                                           for k, v in surface.info.items()}}
+    return surface, record
+
+
+def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
+               config: ObserveConfig, record: dict):
+    """The per-view masks of the chosen source (an iterator) and the source's name."""
+    if masks == "files":
+        if scene.masks is not None:
+            return file_masks(scene.cameras, scene.masks), "files"
+        if scene.segments_anno is not None and scene.surface_mesh is not None:
+            # the annotations label the scan's vertices: project that mesh, whatever surface is lifted onto
+            import trimesh
+
+            scan = trimesh.load(scene.surface_mesh, force="mesh", process=False)
+            vertex_labels, names = scannetpp_vertex_labels(scene.segments_anno, len(scan.vertices))
+            record["annotations"] = str(scene.segments_anno)
+            return projected_masks(Raycaster(scan.vertices, scan.faces), vertex_labels, scene.cameras, names,
+                                   "segments_anno"), "files"
+        raise SceneInputError(scene.root / "masks", "--masks files",
+                              "no masks/ folder and no ScanNet++ annotations (use --masks auto or a folder)")
+    if masks == "auto":
+        t0 = time.perf_counter()
+        cams = [c for c in scene.cameras if camera_problem(c) is None]
+        points, normals = auto_mod.observed_samples(raycaster, cams, config.auto.sample_stride,
+                                                    config.auto.sample_voxel)
+        seg = auto_mod.segment(points, normals, cams, config.auto)
+        record["auto"] = {"samples": len(points), "up": seg.up.round(6).tolist(),
+                          "supports": [s.as_dict() for s in seg.supports], "objects": seg.objects,
+                          "rejected_clusters": seg.rejected, "segment_s": round(time.perf_counter() - t0, 4)}
+        return auto_mod.auto_masks(raycaster, scene.cameras, seg, config.auto.sample_voxel), "auto"
+    return external_masks(Path(masks), scene.cameras), "external"
+
+
+def _write_mask(out_dir: Path, camera: Camera, labels: np.ndarray) -> str:
+    import cv2
+
+    rel = f"observe/masks/{Path(camera.name).stem}.png"
+    ok, buf = cv2.imencode(".png", labels.astype(np.uint16))
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for {rel}")
+    write_bytes(out_dir / rel, buf.tobytes())
+    return rel
+
+
+def instance_record(instance_id: int, members: list[Proposal], mask_paths: dict[int, str],
+                    cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path) -> dict:
+    """Q_i, per-view mask info and the manifest entry of one instance (writes its .npz)."""
+    from phirie_jax.observe.surface import pack_keys
+
+    points = np.concatenate([p.points for p in members])
+    # a point counts when its association voxel is seen by ≥ min_views of the instance's views:
+    # a ray grazing a silhouette lands on the table behind in one view, never in the same place twice
+    voxel_keys = pack_keys(np.floor(points / config.voxel))
+    owner = np.repeat(np.array([p.view for p in members]), [len(p.points) for p in members])
+    pairs = np.unique(np.stack([voxel_keys, owner], 1), axis=0)
+    keys, views_per_key = np.unique(pairs[:, 0], return_counts=True)
+    seen = views_per_key[np.searchsorted(keys, voxel_keys)] >= config.min_views
+    dropped = int((~seen).sum())
+    points = points[seen]
+    _, first = np.unique(pack_keys(np.floor(points / config.points_voxel)), return_index=True)
+    points = points[np.sort(first)]
+    if len(points) > config.max_points:
+        keep = np.random.default_rng(instance_id).choice(len(points), config.max_points, replace=False)
+        points = points[np.sort(keep)]
+    views = sorted({p.view for p in members})
+    centre = points.mean(0)
+    visible = 0
+    for cam in cameras:
+        if camera_problem(cam) is None:
+            uv, depth = cam.project(centre[None])
+            visible += bool(depth[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height)
+    scores = [1.0 if p.score is None else p.score for p in members]
+    confidence = float(np.mean(scores)) * min(1.0, len(views) / max(visible, 1))
+    votes = Counter()
+    for p, s in zip(members, scores):
+        if p.category:
+            votes[p.category] += s
+    rel = f"observe/instance_{instance_id}.npz"
+    buf = io.BytesIO()
+    np.savez_compressed(
+        buf, points=points.astype(np.float32), views=np.array([p.view for p in members], np.int32),
+        labels=np.array([p.label for p in members], np.int64),
+        mask_paths=np.array([mask_paths.get(p.view, "") for p in members], dtype=str),
+        pixels=np.array([p.pixels for p in members], np.int64),
+        bboxes=np.array([p.bbox for p in members], np.int32).reshape(-1, 4),
+        lifted=np.array([len(p.points) for p in members], np.int32))
+    write_bytes(out_dir / rel, buf.getvalue())
+    return {"id": int(instance_id), "category": votes.most_common(1)[0][0] if votes else None,
+            "views": views, "view_names": [cameras[v].name for v in views], "num_points": len(points),
+            "bounds": [points.min(0).round(6).tolist(), points.max(0).round(6).tolist()],
+            "source": source, "points": rel, "confidence": round(confidence, 4),
+            "single_view_points_dropped": dropped}
+
+
+def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
+                masks: str | Path | None = None, scene: SceneInput | None = None) -> dict:
+    """Run Scene Observation on a scene folder; write ``out_dir`` (see the module docstring).
+
+    masks: "files" (mask PNGs or ScanNet++ annotations), "auto", or a folder of an external
+    segmenter's per-image PNG + JSON; None = "files" when the scene has masks, else "auto".
+    Returns the manifest as a dict. Raises ``SceneInputError`` for unusable input as a
+    whole; a failing view or instance is recorded in the manifest and the rest goes on.
+    """
+    out_dir = Path(out_dir)
+    config = config or ObserveConfig()
+    manifest = Manifest.load_or_create(out_dir)
+    start = time.perf_counter()
+    scene = scene or load_scene(scene_dir)
+    cameras = scene.require_cameras()
+    if masks is None:
+        masks = "files" if (scene.masks is not None or scene.segments_anno is not None) else "auto"
+    with manifest.timed("observe.surface"):
+        surface, surface_record = scene_surface(scene, config, out_dir)
+        raycaster = Raycaster(surface.vertices, surface.faces)
+    record: dict = {"surface": surface_record}
+    t_mask = time.perf_counter()
+    views, source = mask_views(scene, masks, raycaster, config, record)
+    mask_s, lift_s = time.perf_counter() - t_mask, 0.0
+    proposals, rejected, failures, mask_paths = [], [], [], {}
+    iterator = iter(views)
+    while True:
+        t0 = time.perf_counter()
+        item = next(iterator, None)
+        mask_s += time.perf_counter() - t0
+        if item is None:
+            break
+        if isinstance(item, ViewFailure):
+            failures.append(item.as_dict())
+            continue
+        assert isinstance(item, ViewMasks)
+        t0 = time.perf_counter()
+        if source == "auto":
+            mask_paths[item.view] = _write_mask(out_dir, cameras[item.view], item.labels)
+        else:
+            mask_paths[item.view] = item.path
+        found, dropped = lift_view(raycaster, cameras[item.view], item, config)
+        proposals += found
+        rejected += dropped
+        lift_s += time.perf_counter() - t0
+    manifest.record_timing("observe.masks", mask_s)
+    manifest.record_timing("observe.lift", lift_s)
+
+    with manifest.timed("observe.associate"):
+        assoc = associate(proposals, config.voxel, config.overlap, config.min_views)
+    instances, failed = [], []
+    with manifest.timed("observe.write"):
+        for instance_id, idx in assoc.groups:
+            try:
+                instances.append(instance_record(instance_id, [proposals[i] for i in idx], mask_paths, cameras,
+                                                 source, config, out_dir))
+            except (OSError, ValueError) as err:
+                failed.append({"id": instance_id, "reason": f"{type(err).__name__}: {err}"})
+    record.update(masks={"source": source, "path": None if source != "external" else str(masks),
+                         "failed_views": failures},
+                  proposals=len(proposals),
+                  rejected_proposals=rejected + [{k: v for k, v in r.items() if k != "proposal"}
+                                                 for r in assoc.rejected],
+                  failed_instances=failed, config=to_dict(config))
+    manifest.set("instances", instances)
+    manifest.set("observe", record)
+    manifest.record_timing("observe", time.perf_counter() - start)
+    manifest.write()
+    return manifest.data

@@ -1,0 +1,85 @@
+"""Asset Gaussians: the host transform equals the JAX one; captured selection; fill of unseen regions;
+stale object folders of an earlier run."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from kernels.gaussians import Sim3, transform_gaussians
+from phirie_jax.construct.objects import assets
+from phirie_jax.types import GaussianSplatData
+
+TOL = 2e-5
+
+
+def random_splats(n, rng, degree=3):
+    return GaussianSplatData(
+        means=rng.normal(0, 0.1, (n, 3)).astype(np.float32), quats=rng.normal(size=(n, 4)).astype(np.float32),
+        log_scales=rng.normal(-5, 0.5, (n, 3)).astype(np.float32),
+        opacity_logits=rng.normal(0, 1, n).astype(np.float32),
+        sh=rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)).astype(np.float32))
+
+
+def test_host_transform_equals_the_kernel_transform():
+    rng = np.random.default_rng(0)
+    data = random_splats(40, rng)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = 0.37 * q, [0.1, -2.0, 0.5]
+    host = assets.transform_splats(data, m)
+    ref = transform_gaussians(data.to_kernel(), Sim3.from_matrix(jnp.asarray(m, jnp.float32)))
+    np.testing.assert_allclose(host.means, np.asarray(ref.means), atol=TOL)
+    np.testing.assert_allclose(host.log_scales, np.asarray(ref.log_scales), atol=TOL)
+    np.testing.assert_allclose(host.sh, np.asarray(ref.sh), atol=1e-4)
+    unit = lambda x: x / np.linalg.norm(x, axis=1, keepdims=True) * np.sign(x[:, :1])  # noqa: E731
+    np.testing.assert_allclose(unit(host.quats), unit(np.asarray(ref.quats)), atol=1e-4)
+
+
+def test_captured_selection_and_fill_of_the_unseen_bottom():
+    rng = np.random.default_rng(1)
+    cube = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    cube.apply_translation([0, 0, 0.05])
+    surface, face = trimesh.sample.sample_surface(cube, 3000, seed=0)
+    top_and_sides = surface[cube.face_normals[face][:, 2] > -0.5]
+    table = np.column_stack([rng.uniform(-0.2, 0.2, (500, 2)), np.zeros(500)])
+    far = rng.uniform(1, 2, (50, 3))
+    means = np.concatenate([top_and_sides, table, far]).astype(np.float32)
+    n = len(means)
+    sh = np.zeros((n, 1, 3), np.float32)
+    sh[: len(top_and_sides), 0] = [1.0, -1.0, 0.5]  # the object's colour
+    scene = GaussianSplatData(means, np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                              np.full((n, 3), -6, np.float32), np.zeros(n, np.float32), sh)
+    q = top_and_sides[::3]
+    mesh_points, _ = trimesh.sample.sample_surface(cube, 5000, seed=1)
+    idx = assets.captured_gaussians(scene, q, mesh_points, means[:, 2].astype(np.float64), 0.01, 0.003)
+    assert set(idx.tolist()) <= set(range(len(top_and_sides)))        # no table, no floaters
+    assert len(idx) > 0.95 * np.sum(top_and_sides[:, 2] > 0.003)
+    kept = scene.subset(idx)
+    fill, info = assets.fill_gaussians(cube.vertices, cube.faces, kept, 0.005, 0.008, 4, 0)
+    assert fill.num > 0 and 0.1 < info["unseen_fraction"] < 0.3          # the bottom face: 1/6 of the area
+    assert np.all(fill.means[:, 2] < 0.01)
+    np.testing.assert_allclose(fill.sh[:, 0], np.tile([1.0, -1.0, 0.5], (fill.num, 1)), atol=1e-6)
+    both = assets.concat_splats([kept, fill])
+    assert both.num == kept.num + fill.num
+
+
+def test_stale_object_folders_go_and_folders_with_foreign_files_stay(tmp_path):
+    def put(rel, text="x"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+
+    put("objects/1/mesh.obj")                                   # this run's object: kept
+    for rel in ("mesh.obj", "visual.ply", "object.urdf", "collision/part_00.obj", "collision/part_13.obj",
+                ".visual.ply.k2j4.tmp"):                         # a previous run's object: removed
+        put(f"objects/2/{rel}")
+    put("objects/3/mesh.obj")
+    put("objects/3/notes.txt")                                   # someone else's file: kept
+    put("objects/extra/mesh.obj")                                # not an object folder: untouched
+    result = assets.remove_stale_object_folders(tmp_path, {1})
+    assert result == {"removed": ["objects/2"], "kept": ["objects/3"]}
+    assert (tmp_path / "objects/1/mesh.obj").exists() and not (tmp_path / "objects/2").exists()
+    assert (tmp_path / "objects/3/notes.txt").exists() and (tmp_path / "objects/extra/mesh.obj").exists()
+    assert assets.remove_stale_object_folders(tmp_path / "nothing_here", set()) == {"removed": [], "kept": []}

@@ -1,0 +1,89 @@
+"""Check tables and the lexicographic ranking on hand-built tables."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from phirie_jax.construct.objects.checks import (
+    candidate_checks,
+    check,
+    failed,
+    first_by_priority,
+    hull_volume,
+    not_run,
+    rank,
+    rank_key,
+)
+from phirie_jax.construct.objects.config import ObjectsConfig
+
+
+def table(residual=0.005, scale=0.05, support=0.97, collision=True, settling=None, settling_passed=None):
+    return {"registration": check(residual, 0.01, residual <= 0.01), "scale": check(scale, 0.15, scale <= 0.15),
+            "support": check(support, 0.9, support >= 0.9), "collision": check(1e-3 if collision else 0.0, 1e-7, collision),
+            "settling": check(settling, 0.03, settling_passed)}
+
+
+def entry(name, priority=0, **kw):
+    return {"name": name, "priority": priority, "checks": table(**kw)}
+
+
+def test_all_passing_beats_fewer_failures_beats_more_failures_whatever_the_residual():
+    a = entry("a", residual=0.0099)                                 # passes everything
+    b = entry("b", residual=0.002, support=0.5)                     # one failure, tiny residual
+    c = entry("c", residual=0.001, support=0.5, scale=0.9)          # two failures, tinier residual
+    assert [e["name"] for e in rank([c, b, a])] == ["a", "b", "c"]
+
+
+def test_residual_then_scale_then_settling_then_priority_then_name():
+    r1 = entry("r1", residual=0.004, scale=0.1)
+    r2 = entry("r2", residual=0.006, scale=0.0)
+    assert [e["name"] for e in rank([r2, r1])] == ["r1", "r2"]           # residual first
+    s1 = entry("s1", residual=0.004, scale=0.01)
+    s2 = entry("s2", residual=0.004, scale=0.02)
+    assert [e["name"] for e in rank([s2, s1])] == ["s1", "s2"]           # then scale
+    d1 = entry("d1", settling=0.01, settling_passed=True)
+    d2 = entry("d2", settling=0.02, settling_passed=True)
+    d3 = entry("d3")                                                     # not run ranks last
+    assert [e["name"] for e in rank([d3, d2, d1])] == ["d1", "d2", "d3"]
+    p1, p2 = entry("zz", priority=0), entry("aa", priority=1)
+    assert [e["name"] for e in rank([p2, p1])] == ["zz", "aa"]           # pool priority
+    n1, n2 = entry("a", priority=1), entry("b", priority=1)
+    assert [e["name"] for e in rank([n2, n1])] == ["a", "b"]             # then the name: deterministic
+
+
+def test_not_run_checks_neither_pass_nor_fail_and_invalid_entries_are_not_ranked():
+    e = entry("x")
+    assert failed(e["checks"]) == [] and not_run(e["checks"]) == ["settling"]
+    assert rank_key(e)[:2] == (False, 0)
+    assert rank([{"name": "broken", "priority": 0, "checks": {}}, e]) == [e]
+
+
+def test_fixed_priority_takes_the_first_passing_candidate_in_pool_order():
+    first_fails = entry("a", priority=0, support=0.5)
+    second_passes = entry("b", priority=1, residual=0.009)
+    third_better = entry("c", priority=2, residual=0.001)
+    assert first_by_priority([third_better, second_passes, first_fails])["name"] == "b"
+    assert first_by_priority([first_fails])["name"] == "a"       # nothing passes: the first valid one
+    assert first_by_priority([]) is None
+
+
+def test_candidate_checks_from_scores():
+    config = ObjectsConfig()
+    scores = {"energy": 0.005, "support": 0.99, "scale": 0.2, "scale_init": 0.2 * math.exp(0.3)}
+    checks = candidate_checks(scores, 1.0, config)
+    assert checks["registration"]["passed"] and checks["support"]["passed"]
+    assert checks["scale"]["value"] == pytest.approx(0.3) and checks["scale"]["passed"] is False
+    assert checks["collision"]["value"] == pytest.approx(0.2**3) and checks["collision"]["passed"]
+    assert checks["settling"] == {"value": None, "threshold": config.settle_threshold, "passed": None,
+                                  "status": "not_run", "reason": checks["settling"]["reason"]}
+    assert failed(checks) == ["scale"]
+
+
+def test_hull_volume_of_a_cube_and_of_a_flat_set():
+    import itertools
+
+    cube = list(itertools.product([0, 2], repeat=3))
+    assert hull_volume(cube) == pytest.approx(8.0)
+    assert hull_volume([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]) == 0.0

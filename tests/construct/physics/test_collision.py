@@ -1,0 +1,127 @@
+"""Mesh repair, bad meshes, CoACD parts within the vertex budget, hull decimation, fallback."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import Delaunay
+
+from phirie_jax.construct.physics import collision
+from phirie_jax.construct.physics.collision import MeshError, collision_from_mesh, convex_part, ghost_part, repair_mesh
+from phirie_jax.construct.physics.config import PhysicsConfig
+
+# CoACD with lighter search settings: the same algorithm, seconds instead of tens of seconds
+FAST = PhysicsConfig(coacd_resolution=1000, coacd_preprocess_resolution=30, coacd_mcts_iterations=60,
+                     coacd_mcts_nodes=10)
+VOLUME_RTOL = 1e-9
+
+
+def annulus():
+    return trimesh.creation.annulus(r_min=0.03, r_max=0.05, height=0.02, sections=48)
+
+
+def test_coacd_splits_an_annulus_into_several_parts_within_the_vertex_budget():
+    mesh = annulus()
+    result = collision_from_mesh(mesh.vertices, mesh.faces, FAST)
+    report = result.report
+    assert report["method"] == "coacd" and "fallback" not in report
+    assert 4 <= report["parts"] == len(result.parts) <= FAST.max_parts      # a ring is no single convex part
+    assert all(4 <= len(p.vertices) <= FAST.max_hull_vertices for p in result.parts)
+    assert all(p.volume > 0 for p in result.parts)
+    # the parts cover the ring: about its volume, and none fills the hole
+    assert 0.9 <= report["hull_volume_ratio"] <= 1.3
+    centre_inside = [Delaunay(p.vertices).find_simplex([[0.0, 0.0, 0.0]])[0] >= 0 for p in result.parts]
+    assert not any(centre_inside)
+    assert report["time_s"] > 0 and report["repair"]["watertight"]
+
+
+def test_a_coacd_failure_falls_back_to_the_convex_hull_and_says_so(monkeypatch):
+    def broken(mesh, config):
+        raise RuntimeError("simulated CoACD crash")
+
+    monkeypatch.setattr(collision, "_coacd_parts", broken)
+    mesh = annulus()
+    result = collision_from_mesh(mesh.vertices, mesh.faces, FAST)
+    assert result.report["method"] == "convex_hull" and "simulated CoACD crash" in result.report["fallback"]
+    assert len(result.parts) == 1 and len(result.parts[0].vertices) <= FAST.max_hull_vertices
+    assert result.report["hull_volume_ratio"] > 1.0   # the hull fills the hole
+
+
+def unit_box_soup(flip_every: int = 3):
+    """A box as a triangle soup (every triangle its own vertices) with some triangles flipped."""
+    box = trimesh.creation.box([0.1, 0.2, 0.3])
+    tri = box.triangles.copy()
+    tri[::flip_every] = tri[::flip_every, ::-1]
+    return tri.reshape(-1, 3), np.arange(len(tri) * 3).reshape(-1, 3), box.volume
+
+
+def test_repair_merges_vertices_and_fixes_winding():
+    verts, faces, volume = unit_box_soup()
+    mesh = repair_mesh(verts, faces)
+    assert len(mesh.vertices) == 8 and len(mesh.faces) == 12 and mesh.watertight
+    assert mesh.volume == pytest.approx(volume, rel=VOLUME_RTOL)
+    assert trimesh.Trimesh(mesh.vertices, mesh.faces).volume == pytest.approx(volume, rel=VOLUME_RTOL)  # outward
+
+
+def test_repair_simplifies_to_the_triangle_budget():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.05)      # 20480 triangles
+    config = PhysicsConfig(max_triangles=2000)
+    mesh = repair_mesh(sphere.vertices, sphere.faces, config)
+    assert len(mesh.faces) <= 2000 and mesh.report["simplified_to"] == len(mesh.faces)
+    assert mesh.volume == pytest.approx(sphere.volume, rel=0.02)
+
+
+def fin_mesh():
+    """A closed box with one extra triangle on an edge: that edge has three triangles."""
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    v = box.vertices
+    edge = next(e for e in box.edges_unique if v[e[0], 2] > 0 and v[e[1], 2] > 0 and v[e[0], 1] == v[e[1], 1])
+    apex = box.vertices[edge].mean(0) + [0.0, 0.0, 0.2]
+    verts = np.vstack([box.vertices, apex])
+    faces = np.vstack([box.faces, [edge[0], edge[1], len(box.vertices)]])
+    return verts, faces
+
+
+@pytest.mark.parametrize("name, mesh, reason", [
+    ("empty", (np.zeros((0, 3)), np.zeros((0, 3), int)), "empty mesh"),
+    ("degenerate", (np.zeros((3, 3)), np.array([[0, 1, 2]])), "empty mesh"),
+    ("non-manifold", fin_mesh(), "non-manifold"),
+    ("flat", (np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.1, 0.1, 0]]), np.array([[0, 1, 2], [1, 3, 2]])),
+     "zero volume"),
+    ("nan", (np.array([[0, 0, 0], [1, 0, 0], [np.nan, 1, 0]]), np.array([[0, 1, 2]])), "non-finite"),
+    ("bad index", (np.zeros((3, 3)), np.array([[0, 1, 7]])), "outside"),
+])
+def test_bad_meshes_raise_a_reason(name, mesh, reason):
+    with pytest.raises(MeshError, match=reason):
+        collision_from_mesh(*mesh)
+
+
+def test_hull_decimation_stays_within_budget_and_inside_the_hull():
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(2000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)                # 2000 hull vertices
+    part = convex_part(points, 64)
+    assert len(part.vertices) <= 64
+    # the decimated vertices are original points, so the part lies inside the original hull
+    assert np.all(np.min(np.linalg.norm(part.vertices[:, None] - points[None], axis=-1), axis=1) < 1e-12)
+    assert 0.8 * (4 / 3 * np.pi) < part.volume < 4 / 3 * np.pi
+    assert trimesh.Trimesh(part.vertices, part.faces).volume == pytest.approx(part.volume)   # outward wound
+    assert convex_part(points[:, :2].repeat(2, axis=1)[:, :3] * [1, 1, 0], 64) is None      # flat → None
+
+
+def test_a_ghost_part_lies_strictly_inside_its_part():
+    part = convex_part(trimesh.creation.cone(0.04, 0.12, sections=16).vertices, 64)
+    ghost = ghost_part(part)
+    assert np.all(Delaunay(part.vertices).find_simplex(ghost.vertices) >= 0)
+    assert ghost.vertices[:, 2].min() > part.vertices[:, 2].min() + 1e-3
+
+
+def test_repair_closes_a_hole_and_keeps_the_volume():
+    box = trimesh.creation.box([0.1, 0.2, 0.3])
+    top = np.flatnonzero(box.triangles_center[:, 2] > 0.149)
+    faces = np.delete(box.faces, top, axis=0)[:, ::-1]        # open and inside out
+    mesh = repair_mesh(box.vertices, faces)
+    assert mesh.watertight and mesh.report["holes_filled"]
+    assert mesh.volume == pytest.approx(box.volume, rel=VOLUME_RTOL)
+    assert trimesh.Trimesh(mesh.vertices, mesh.faces).volume > 0
