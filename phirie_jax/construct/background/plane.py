@@ -26,6 +26,7 @@ import numpy as np
 from scipy import ndimage
 
 from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.geometry import rotation_to_z
 from phirie_jax.types import GaussianSplatData
 
 SH_C0 = 0.28209479177387814
@@ -142,7 +143,6 @@ def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, gri
 def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray, up: np.ndarray,
                 base: float, config: BackgroundConfig) -> np.ndarray:
     """Indices of kept Gaussians in the ring around the footprint (module docstring, 1)."""
-    from phirie_jax.construct.objects.support import rotation_to_z
 
     rot = rotation_to_z(up)
     obj_g = obj_points @ rot.T

@@ -19,6 +19,8 @@ import dataclasses
 
 import numpy as np
 
+from phirie_jax.geometry import rotation_to_z
+
 RING_INNER, RING_OUTER = 0.015, 0.06   # ring around the footprint, metres
 RING_RAYS = 24                         # rays per side of the ring's sampling grid
 ABOVE_BASE = 0.01                      # hits up to this above Q's base height count
@@ -46,22 +48,6 @@ class GravityFrame:
         out = np.eye(4)
         out[:3, :3] = self.rotation.T
         return out
-
-
-def rotation_to_z(up: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation taking unit ``up`` to +z."""
-    up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    z = np.array([0.0, 0.0, 1.0])
-    c = float(up @ z)
-    if c > 1 - 1e-12:
-        return np.eye(3)
-    if c < -1 + 1e-12:
-        return np.diag([1.0, -1.0, -1.0])
-    k = np.cross(up, z)
-    s = np.linalg.norm(k)
-    k /= s
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * K + (1 - c) * K @ K
 
 
 @dataclasses.dataclass(frozen=True)

@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from phirie_jax.construct.physics.collision import ConvexPart, MeshError, ghost_part, hull_part
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
 from phirie_jax.construct.physics.priors import MassProperties, Priors, mass_properties, priors
+from phirie_jax.geometry import rotation_to_z, split_sim3
 
 PLANE_HALF_SIZE = 5.0     # m; the plane is infinite for collisions, this is only its drawn size
 
@@ -56,36 +57,11 @@ class DropResult:
         return dataclasses.asdict(self)
 
 
-def rotation_to_z(up) -> np.ndarray:
-    """(3, 3) the smallest rotation taking ``up`` to +z."""
-    up = np.asarray(up, np.float64)
-    up = up / np.linalg.norm(up)
-    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
-    return rot.as_matrix()
-
-
-def split_pose(pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """A 4×4 Sim(3) → (scale, (3, 3) rotation, (3,) translation); ``ValueError`` otherwise."""
-    pose = np.asarray(pose, np.float64)
-    if pose.shape != (4, 4) or not np.isfinite(pose).all():
-        raise ValueError("pose: expected a finite 4×4 matrix")
-    block = pose[:3, :3]
-    det = float(np.linalg.det(block))
-    if det <= 0:
-        raise ValueError(f"pose: rotation block has determinant {det:.3g} (expected a positive similarity)")
-    scale = det ** (1.0 / 3.0)
-    rot = block / scale
-    if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4):
-        raise ValueError("pose: rotation block is not a uniform scale times a rotation")
-    u, _, vt = np.linalg.svd(rot)
-    return scale, u @ vt, pose[:3, 3].copy()
-
-
 def body_from_parts(parts: Sequence[ConvexPart], pose: np.ndarray, up=(0.0, 0.0, 1.0),
                     body_priors: Priors | None = None) -> DropBody:
     """A drop body from canonical-frame parts placed by a Sim(3) ``pose`` in a scene whose up is ``up``."""
     body_priors = body_priors or priors(None)
-    scale, rot, _ = split_pose(pose)
+    scale, rot, _ = split_sim3(pose)
     scaled = tuple(ConvexPart(scale * p.vertices, p.faces) for p in parts)
     return DropBody(scaled, mass_properties(scaled, body_priors.mass), rotation_to_z(up) @ rot, body_priors)
 

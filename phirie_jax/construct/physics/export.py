@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 from phirie_jax.construct.physics.collision import ConvexPart
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.construct.physics.priors import MassProperties, Priors
+from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_files, write_text
 
 GRAVITY = 9.81
@@ -143,7 +144,6 @@ def _contact_attrs(pr: Priors) -> dict[str, str]:
 def scene_mjcf(objects: list[SceneObject], background: list[BackgroundGeom], up: np.ndarray,
                config: PhysicsConfig) -> str:
     """``scene.xml`` text (paths relative to the folder it is written to)."""
-    from phirie_jax.construct.physics.droptest import split_pose
     from phirie_jax.construct.physics.priors import priors as default_priors
 
     dt = config.drop_test
@@ -162,7 +162,7 @@ def scene_mjcf(objects: list[SceneObject], background: list[BackgroundGeom], up:
         ET.SubElement(world, "geom", name=g.name, type=g.type, pos=_f(g.pos), quat=_f(g.quat), size=_f(g.size),
                       rgba="0.6 0.6 0.6 1", **ground)
     for obj in objects:
-        scale, rot, trans = split_pose(obj.pose)
+        scale, rot, trans = split_sim3(obj.pose)
         name = body_name(obj.id)
         quat = Rotation.from_matrix(rot).as_quat(scalar_first=True)
         body = ET.SubElement(world, "body", name=name, pos=_f(trans), quat=_f(quat))

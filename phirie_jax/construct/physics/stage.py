@@ -38,6 +38,7 @@ from phirie_jax.construct.physics.export import (
 )
 from phirie_jax.construct.physics.priors import Priors, mass_properties, priors
 from phirie_jax.construct.physics.supports import PlacedBody, fit_background
+from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
 from phirie_jax.manifest import Manifest, to_dict
 
@@ -76,7 +77,7 @@ def build_object(entry: dict, category: str | None, out_dir: Path, config: Physi
     """Collision, priors, inertia and URDF of one accepted object → the fields to update."""
     if entry.get("pose") is None or not entry.get("mesh"):
         raise MeshError("accepted object without a pose or mesh in the manifest")
-    scale, _, _ = dt.split_pose(np.asarray(entry["pose"]))
+    scale, _, _ = split_sim3(np.asarray(entry["pose"]))
     vertices, faces = _load_mesh(_path(out_dir, entry["mesh"]))
     collision = collision_from_mesh(vertices, faces, config)
     pr = priors(category, config)
@@ -214,7 +215,7 @@ def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: Physi
         if entry.get("status") == "accepted" and entry.get("collision"):
             body, obj = _drop_body(entry, out_dir, up)
             scene_objects.append(obj)
-            scale, rot, trans = dt.split_pose(obj.pose)
+            scale, rot, trans = split_sim3(obj.pose)
             pts = np.concatenate([(scale * p.vertices) @ rot.T + trans for p in body.parts])
             support = (entry.get("support") or {}).get("height")
             placed.append(PlacedBody(entry["id"], pts, None if support is None else float(support)))

@@ -18,8 +18,8 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.construct.physics.droptest import rotation_to_z
 from phirie_jax.construct.physics.export import BackgroundGeom
+from phirie_jax.geometry import rotation_to_z
 
 HEIGHT_MERGE = 0.01        # supports closer than this in height are one support, m
 UP_FACING_DEG = 20.0       # surface triangles within this of up may be support

@@ -9,14 +9,8 @@ import trimesh
 from phirie_jax.construct.objects.candidates import builtin, mesh_problem
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.generators import InstanceInput, extrude, primitive
-from phirie_jax.construct.objects.support import (
-    GravityFrame,
-    Support,
-    find_support,
-    gravity_frame,
-    refine_frame,
-    rotation_to_z,
-)
+from phirie_jax.construct.objects.support import GravityFrame, Support, find_support, gravity_frame, refine_frame
+from phirie_jax.geometry import rotation_to_z
 from phirie_jax.observe.raycast import Raycaster
 from tests.kernels.shapes import box_surface
 

@@ -17,9 +17,9 @@ from phirie_jax.construct.physics.droptest import (
     drop_test_meshes,
     settling_check,
     spawn_qpos,
-    split_pose,
     verdict,
 )
+from phirie_jax.geometry import split_sim3
 from tests.fixtures import droptest_cases as cases
 
 TOUCH_TOL = 1e-12     # m, lowest point on the plane at spawn
@@ -58,9 +58,9 @@ def test_scene_up_and_pose_scale_are_honoured():
     np.testing.assert_allclose(body.rotation, np.eye(3), atol=1e-12)    # upright in the gravity frame
     np.testing.assert_allclose(np.ptp(body.parts[0].vertices, axis=0), [0.2, 0.12, 0.08], atol=1e-12)
     with pytest.raises(ValueError, match="similarity|uniform"):
-        split_pose(np.diag([1.0, 2.0, 1.0, 1.0]))
+        split_sim3(np.diag([1.0, 2.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="determinant"):
-        split_pose(np.diag([1.0, 1.0, -1.0, 1.0]))
+        split_sim3(np.diag([1.0, 1.0, -1.0, 1.0]))
 
 
 def test_a_box_on_its_face_is_stable_and_a_cone_on_its_tip_is_not():

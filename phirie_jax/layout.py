@@ -1,0 +1,51 @@
+"""Every name in an output folder, once (DESIGN.md "Contracts": paths in the manifest are
+relative to the output folder).
+
+    OUT/manifest.json              the record every stage writes
+    OUT/transforms.json            the capture's cameras (the folder is self-contained)
+    OUT/observe/surface.ply        the splat-derived scene surface, when one was fused
+    OUT/objects/<id>/mesh.obj      canonical completed mesh; the manifest's pose places it
+    OUT/objects/<id>/visual.ply    the object's own Gaussians, canonical frame
+    OUT/objects/<id>/collision/part_NN.obj   convex parts, canonical frame
+    OUT/objects/<id>/object.urdf
+    OUT/scene.xml                  MJCF of the whole scene
+    OUT/background.ply             G_bg = (G0 \\ ∪R_i) ∪ G_fill
+    OUT/background/targets/        the inpainting targets, when written
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+MANIFEST = "manifest.json"
+CAMERAS = "transforms.json"
+BACKGROUND_TARGETS = "background/targets"
+OBSERVED_SURFACE = "observe/surface.ply"
+SCENE_MJCF = "scene.xml"
+BACKGROUND = "background.ply"
+OBJECTS = "objects"
+OBJECT_MESH = "mesh.obj"
+OBJECT_VISUAL = "visual.ply"
+OBJECT_URDF = "object.urdf"
+COLLISION = "collision"
+
+
+def object_dir(object_id: int) -> Path:
+    """``objects/<id>`` (relative to the output folder)."""
+    return Path(OBJECTS) / str(object_id)
+
+
+def object_file(object_id: int, name: str) -> str:
+    """``objects/<id>/<name>`` as the manifest records it."""
+    return (object_dir(object_id) / name).as_posix()
+
+
+def collision_part(object_id: int, index: int) -> str:
+    """``objects/<id>/collision/part_NN.obj`` as the manifest records it."""
+    return (object_dir(object_id) / COLLISION / f"part_{index:02d}.obj").as_posix()
+
+
+def resolve(out_dir: str | Path, path: str | Path) -> Path:
+    """A manifest path (relative to ``out_dir``, or absolute) as a path to open."""
+    path = Path(path)
+    return path if path.is_absolute() else Path(out_dir) / path
