@@ -66,8 +66,8 @@ def _scene(root: Path, seed: int) -> Path:
 def _objects(scene_dir: Path, out: Path) -> dict:
     from phirie_jax.construct.objects.config import ObjectsConfig
     from phirie_jax.construct.objects.stage import run_objects
-    from phirie_jax.observe.stage import run_observe
     from phirie_jax.observe.config import ObserveConfig
+    from phirie_jax.observe.stage import run_observe
 
     manifest = out / "manifest.json"
     if manifest.exists() and "objects" in json.loads(manifest.read_text()):

@@ -69,8 +69,8 @@ def _surface_error(vertices, gt_surface, rng) -> dict:
 
 def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
     from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe.stage import run_observe
     from phirie_jax.observe.evaluate import evaluate
+    from phirie_jax.observe.stage import run_observe
 
     scene = load_scene(scene_dir, surface=surface_path)
     manifest = run_observe(scene_dir, out, config, masks=masks, scene=scene)

@@ -48,12 +48,20 @@ def _plain(value: Any) -> Any:
     return value
 
 
+@dataclasses.dataclass
+class Elapsed:
+    """Wall seconds of a finished ``Manifest.timed`` block."""
+
+    seconds: float = 0.0
+
+
 class Manifest:
     """The manifest of one output folder, held in memory until ``write``."""
 
     def __init__(self, out_dir: str | Path, data: dict | None = None):
         self.out_dir = Path(out_dir)
         self.data: dict = data if data is not None else {"schema": SCHEMA, "timings": {}}
+        self._timed: set[str] = set()  # timings recorded by this run (later blocks add to them)
 
     @property
     def path(self) -> Path:
@@ -102,15 +110,22 @@ class Manifest:
 
     def record_timing(self, stage: str, seconds: float) -> None:
         self.data["timings"][stage] = round(float(seconds), 6)
+        self._timed.add(stage)
 
     @contextlib.contextmanager
-    def timed(self, stage: str) -> Iterator[None]:
-        """Record the wall time of the block under ``stage`` (also when it raises)."""
+    def timed(self, name: str) -> Iterator[Elapsed]:
+        """Time the block into ``timings[name]`` (also when it raises). The first block of a name
+        in this run replaces an earlier run's value; later blocks of the same name add to it, so
+        a step inside a loop records its total. Yields an ``Elapsed`` whose ``seconds`` is this
+        block's time once it ends."""
+        elapsed = Elapsed()
         start = time.perf_counter()
         try:
-            yield
+            yield elapsed
         finally:
-            self.record_timing(stage, time.perf_counter() - start)
+            elapsed.seconds = time.perf_counter() - start
+            before = self.data["timings"].get(name, 0.0) if name in self._timed else 0.0
+            self.record_timing(name, before + elapsed.seconds)
 
     def write(self) -> Path:
         """Write ``manifest.json`` atomically (never half-written) and return its path."""

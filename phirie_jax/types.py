@@ -111,6 +111,29 @@ class GaussianSplatData:
             extra=dict(extra or {}),
         )
 
+    @staticmethod
+    def join(parts: "list[GaussianSplatData]", like: "GaussianSplatData | None" = None) -> "GaussianSplatData":
+        """The sets one after another (float32). SH is padded with zeros (or cut) to ``like``'s
+        degree, else to the highest of ``parts``; ``like``'s extra properties are kept (zeros for
+        sets without them), with its file layout and comments."""
+        k = like.sh.shape[1] if like is not None else max(p.sh.shape[1] for p in parts)
+
+        def sh(p: GaussianSplatData) -> np.ndarray:
+            out = np.zeros((p.num, k, 3), np.float32)
+            out[:, : min(k, p.sh.shape[1])] = p.sh[:, :k]
+            return out
+
+        extra = {} if like is None else {
+            name: np.concatenate([p.extra.get(name, np.zeros(p.num, values.dtype)) for p in parts])
+            for name, values in like.extra.items()}
+        return GaussianSplatData(
+            means=np.concatenate([p.means for p in parts]).astype(np.float32),
+            quats=np.concatenate([p.quats for p in parts]).astype(np.float32),
+            log_scales=np.concatenate([p.log_scales for p in parts]).astype(np.float32),
+            opacity_logits=np.concatenate([p.opacity_logits for p in parts]).astype(np.float32),
+            sh=np.concatenate([sh(p) for p in parts]), extra=extra,
+            layout=like.layout if like is not None else (), comments=like.comments if like is not None else ())
+
     def subset(self, index: np.ndarray) -> "GaussianSplatData":
         """The Gaussians selected by ``index`` (boolean mask or integer indices), extras included."""
         return dataclasses.replace(

@@ -27,7 +27,6 @@ def background_truth(scene_dir: str | Path) -> BackgroundTruth:
     """The truth of a ``phirie synth`` folder (it needs ``gt/background.ply`` and ``gt/labels.npy``)."""
     from scipy.spatial import cKDTree
 
-    from phirie_jax.construct.background.stage import concat
 
     scene_dir = Path(scene_dir)
     capture = read_gaussian_ply(scene_dir / "point_cloud.ply")
@@ -37,7 +36,7 @@ def background_truth(scene_dir: str | Path) -> BackgroundTruth:
     floaters = capture.subset(np.flatnonzero(labels == 0)[d > SAME_GAUSSIAN])
     d_hidden, _ = cKDTree(capture.means).query(background.means)
     hidden = np.concatenate([d_hidden > SAME_GAUSSIAN, np.zeros(floaters.num, bool)])
-    return BackgroundTruth(capture, labels, concat([background, floaters], background), hidden)
+    return BackgroundTruth(capture, labels, GaussianSplatData.join([background, floaters], like=background), hidden)
 
 
 def uncovered_region(truth: BackgroundTruth, camera, background_rgb, weight: float = REGION_WEIGHT) -> np.ndarray:

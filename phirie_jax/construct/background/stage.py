@@ -68,26 +68,6 @@ def _base_height(manifest: Manifest, obj: ObjectInput, up: np.ndarray) -> float:
     return float(np.percentile(obj.q @ up, BASE_PERCENTILE))
 
 
-def concat(parts: list[GaussianSplatData], like: GaussianSplatData) -> GaussianSplatData:
-    """Gaussian sets joined, SH padded to ``like``'s degree, ``like``'s extra properties kept (zeros
-    for sets without them) and its file layout."""
-    k = like.sh.shape[1]
-
-    def sh(p):
-        out = np.zeros((p.num, k, 3), np.float32)
-        out[:, : min(k, p.sh.shape[1])] = p.sh[:, :k]
-        return out
-
-    extra = {name: np.concatenate([p.extra.get(name, np.zeros(p.num, values.dtype)) for p in parts])
-             for name, values in like.extra.items()}
-    return GaussianSplatData(
-        means=np.concatenate([p.means for p in parts]).astype(np.float32),
-        quats=np.concatenate([p.quats for p in parts]).astype(np.float32),
-        log_scales=np.concatenate([p.log_scales for p in parts]).astype(np.float32),
-        opacity_logits=np.concatenate([p.opacity_logits for p in parts]).astype(np.float32),
-        sh=np.concatenate([sh(p) for p in parts]), extra=extra, layout=like.layout, comments=like.comments)
-
-
 @dataclasses.dataclass
 class _Clock:
     seconds: dict = dataclasses.field(default_factory=dict)
@@ -209,7 +189,7 @@ def run_background(scene_dir: str | Path, out_dir: str | Path, config: Backgroun
 
     fill_data, frames_record, refine_record = None, [], None
     if disk_parts:
-        disk_set = DiskSet(concat(disk_parts, disk_parts[0]), np.concatenate(tangent_parts).astype(np.float32),
+        disk_set = DiskSet(GaussianSplatData.join(disk_parts, like=disk_parts[0]), np.concatenate(tangent_parts).astype(np.float32),
                            np.concatenate(owner_parts))
         frames, frames_record = _frames(data, removed, disk_set, regions, records, cameras, config, crops, out_dir,
                                         failed)
@@ -235,7 +215,7 @@ def run_background(scene_dir: str | Path, out_dir: str | Path, config: Backgroun
 
     kept_out = data.subset(~removed)
     parts = [kept_out] + ([fill_data] if fill_data is not None and fill_data.num else [])
-    background = concat(parts, data)
+    background = GaussianSplatData.join(parts, like=data)
     write_gaussian_ply(out_dir / OUTPUT, background)
     clock.add("write", clock_t)
     for rec in records.values():

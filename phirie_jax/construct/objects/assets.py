@@ -142,16 +142,6 @@ def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatD
                   "coloured_from_neighbours": bool(kept.num)}
 
 
-def concat_splats(parts: list[GaussianSplatData]) -> GaussianSplatData:
-    k = max(p.sh.shape[1] for p in parts)
-    sh = [np.concatenate([p.sh, np.zeros((p.num, k - p.sh.shape[1], 3), np.float32)], 1) for p in parts]
-    return GaussianSplatData(
-        means=np.concatenate([p.means for p in parts]).astype(np.float32),
-        quats=np.concatenate([p.quats for p in parts]).astype(np.float32),
-        log_scales=np.concatenate([p.log_scales for p in parts]).astype(np.float32),
-        opacity_logits=np.concatenate([p.opacity_logits for p in parts]).astype(np.float32),
-        sh=np.concatenate(sh).astype(np.float32))
-
 
 def candidate_gaussians(path: Path, candidate_to_canonical: np.ndarray) -> GaussianSplatData:
     """A candidate's own Gaussians (its file frame) placed in the asset's canonical frame."""

@@ -55,7 +55,7 @@ from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
-from phirie_jax.types import SceneInput
+from phirie_jax.types import GaussianSplatData, SceneInput
 
 
 class _Clock:
@@ -201,7 +201,7 @@ def _write_assets(chosen: dict, candidate: Candidate, inst: InstanceInput, q_wor
         kept = assets.transform_splats(g.subset(idx), np.linalg.inv(frame.pose))
         fill, fill_info = assets.fill_gaussians(canon, candidate.faces, kept, config.fill_spacing,
                                                 config.fill_min_distance, config.colour_neighbours, inst.id)
-        splats = assets.concat_splats([kept, fill]) if kept.num else fill
+        splats = GaussianSplatData.join([kept, fill]) if kept.num else fill
         visual.update(source="captured", captured=int(kept.num), filled=int(fill.num), fill=fill_info)
     if splats is not None:
         assets.write_visual(folder / "visual.ply", splats)

@@ -62,7 +62,7 @@ def test_captured_selection_and_fill_of_the_unseen_bottom():
     assert fill.num > 0 and 0.1 < info["unseen_fraction"] < 0.3          # the bottom face: 1/6 of the area
     assert np.all(fill.means[:, 2] < 0.01)
     np.testing.assert_allclose(fill.sh[:, 0], np.tile([1.0, -1.0, 0.5], (fill.num, 1)), atol=1e-6)
-    both = assets.concat_splats([kept, fill])
+    both = GaussianSplatData.join([kept, fill])
     assert both.num == kept.num + fill.num
 
 
