@@ -66,6 +66,7 @@ def _scene(root: Path, seed: int) -> Path:
 def _objects(scene_dir: Path, out: Path) -> dict:
     from phirie_jax.construct.objects.config import ObjectsConfig
     from phirie_jax.construct.objects.stage import run_objects
+    from phirie_jax.construct.physics.settling import candidate_settler
     from phirie_jax.observe.config import ObserveConfig
     from phirie_jax.observe.stage import run_observe
 
@@ -73,7 +74,7 @@ def _objects(scene_dir: Path, out: Path) -> dict:
     if manifest.exists() and "objects" in json.loads(manifest.read_text()):
         return json.loads(manifest.read_text())
     run_observe(scene_dir, out, ObserveConfig(), masks="files")
-    return run_objects(scene_dir, out, ObjectsConfig())
+    return run_objects(scene_dir, out, ObjectsConfig(), settle=candidate_settler())
 
 
 def held_out_cameras(scene_cameras, seed: int):

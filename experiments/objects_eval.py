@@ -265,6 +265,7 @@ def warm_up(observed: list[tuple[Path, Path]], configs: list[ObjectsConfig]) -> 
     """Compile every program the timed runs need (Q buckets × search shapes, scoring, carving)
     by running each configuration once on copies; → seconds spent."""
     from phirie_jax.construct.objects.stage import run_objects
+    from phirie_jax.construct.physics.settling import candidate_settler
 
     start = time.perf_counter()
     for scene_dir, obs_out in observed:
@@ -272,7 +273,7 @@ def warm_up(observed: list[tuple[Path, Path]], configs: list[ObjectsConfig]) -> 
             scratch = obs_out.parent / "warmup"
             shutil.rmtree(scratch, ignore_errors=True)
             shutil.copytree(obs_out, scratch)
-            run_objects(scene_dir, scratch, config)
+            run_objects(scene_dir, scratch, config, settle=candidate_settler())
             shutil.rmtree(scratch, ignore_errors=True)
     return time.perf_counter() - start
 
@@ -283,11 +284,12 @@ def run_row(scene_dir: Path, obs_out: Path, config: ObjectsConfig, out: Path, me
 
     from phirie_jax.construct.objects import register as reg
     from phirie_jax.construct.objects.stage import run_objects
+    from phirie_jax.construct.physics.settling import candidate_settler
 
     shutil.rmtree(out, ignore_errors=True)
     shutil.copytree(obs_out, out)
     traces = dict(reg.TRACE_COUNTS)
-    manifest = run_objects(scene_dir, out, config)
+    manifest = run_objects(scene_dir, out, config, settle=candidate_settler())
     new_traces = {k: reg.TRACE_COUNTS[k] - traces[k] for k in traces}
     gt = {o["id"]: o for o in json.loads((scene_dir / "gt" / "objects.json").read_text())}
     objects, candidates = [], []

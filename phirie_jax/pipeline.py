@@ -52,6 +52,7 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     """
     from phirie_jax.construct.background.stage import run_background
     from phirie_jax.construct.objects.stage import run_objects
+    from phirie_jax.construct.physics.settling import candidate_settler
     from phirie_jax.construct.physics.stage import run_physics
     from phirie_jax.observe.stage import run_observe
 
@@ -72,7 +73,8 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     stage("observe")
     run_observe(scene_dir, out_dir, config.observe, masks=masks, scene=scene)
     stage("objects")
-    run_objects(scene_dir, out_dir, config.objects, strict=strict, scene=scene, physics=config.physics)
+    run_objects(scene_dir, out_dir, config.objects, strict=strict, scene=scene,
+                settle=candidate_settler(config.physics))
     stage("physics")
     run_physics(scene_dir, out_dir, config.physics)
     stage("background")

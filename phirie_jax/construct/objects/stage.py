@@ -30,6 +30,7 @@ import dataclasses
 import math
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,6 @@ from phirie_jax.construct.objects.register import (
     search,
 )
 from phirie_jax.construct.objects.support import GravityFrame, Support, find_support, gravity_frame, refine_frame
-from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
@@ -221,27 +221,23 @@ def _entry_for(instance_id: int, reason: str | None = None) -> dict:
 
 
 def settle_candidates(entries: list[dict], pool: list[Candidate], up: np.ndarray, category: str | None,
-                      physics: PhysicsConfig) -> None:
-    """Drop-test every registered candidate at its placement in one batch (single-hull
-    stand-in, the paper's protocol) and fill in its settling check, so ranking sees it."""
-    from phirie_jax.construct.physics.droptest import drop_test_meshes, settling_check
-
+                      settle: Callable) -> None:
+    """Drop-test every registered candidate at its placement (``settle``: physics's
+    ``CandidateSettler``) and fill in its settling check, so ranking sees it."""
     by_name = {c.name: c for c in pool}
     placed = [e for e in entries if e.get("pose") is not None and e["name"] in by_name]
     if not placed:
         return
     meshes = [(by_name[e["name"]].vertices, by_name[e["name"]].faces) for e in placed]
-    results = drop_test_meshes(meshes, [e["pose"] for e in placed], up=up,
-                               categories=[category] * len(placed), config=physics)
-    for e, result in zip(placed, results):
-        e["checks"] = {**e["checks"], "settling": settling_check(result, physics.drop_test, "convex hull stand-in")}
+    for e, row in zip(placed, settle(meshes, [e["pose"] for e in placed], up, category)):
+        e["checks"] = {**e["checks"], "settling": row}
 
 
 def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
                      config: ObjectsConfig, out_dir: Path, clock: _Clock,
-                     physics: PhysicsConfig | None = None) -> dict:
+                     settle: Callable | None = None) -> dict:
     """The manifest ``objects`` entry of one instance (writes its asset files when accepted).
-    With ``physics``, every candidate is drop-tested before ranking (settling check)."""
+    With ``settle``, every candidate is drop-tested before ranking (settling check)."""
     out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
@@ -253,9 +249,9 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
     entries = [register_candidate(c, obs, config, clock) for c in pool]
     for e in entries:
         e["pose"] = None if "gravity_matrix" not in e else inst.frame.matrix() @ e["gravity_matrix"]
-    if physics is not None:
+    if settle is not None:
         t0 = time.perf_counter()
-        settle_candidates(entries, pool, inst.frame.up, record.get("category"), physics)
+        settle_candidates(entries, pool, inst.frame.up, record.get("category"), settle)
         clock.add("objects.settle", t0)
     chosen = _select(entries, config)
     for position, e in enumerate(rank(entries)):
@@ -279,11 +275,11 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
 
 def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfig | None = None,
                 strict: bool = False, scene: SceneInput | None = None,
-                physics: PhysicsConfig | None = PhysicsConfig()) -> dict:
+                settle: Callable | None = None) -> dict:
     """Construct every observed instance's object (see the module docstring). Returns the manifest.
 
-    ``physics``: priors and drop-test settings for the candidates' settling check; None leaves
-    that check "not run".
+    ``settle``: the candidates' settling check (``construct.physics.settling.candidate_settler``,
+    which the pipeline passes); None leaves that check "not run".
     """
     out_dir = Path(out_dir)
     config = config or ObjectsConfig()
@@ -313,7 +309,7 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
         t_obj = time.perf_counter()
         try:
             inst = _instance_input(record, q, data, frame, support, scene, out_dir)
-            entry = construct_object(record, q, inst, scene, config, out_dir, clock, physics)
+            entry = construct_object(record, q, inst, scene, config, out_dir, clock, settle)
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
             entry = {**_entry_for(record["id"], f"{type(err).__name__}: {err}"),
                      "traceback": traceback.format_exc(limit=4)}

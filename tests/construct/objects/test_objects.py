@@ -14,6 +14,7 @@ import trimesh
 from phirie_jax.construct.objects.assets import transform_splats
 from phirie_jax.construct.objects.config import ObjectsConfig, RegistrationConfig
 from phirie_jax.construct.objects.stage import run_objects
+from phirie_jax.construct.physics.settling import candidate_settler
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
 from phirie_jax.observe.config import ObserveConfig
@@ -21,6 +22,7 @@ from phirie_jax.observe.stage import run_observe
 from tests.kernels.shapes import in_random_frame
 from tests.observe.helpers import tabletop_folder
 
+SETTLE = candidate_settler()
 FAST = ObjectsConfig(hull_resolution=32, registration=RegistrationConfig(
     points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024, icp_obs_points=1024,
     score_obs_points=1024, hypothesis_batch=108))
@@ -58,7 +60,7 @@ def constructed(observed, tmp_path_factory):
     root, out, scene, truth = observed
     work = tmp_path_factory.mktemp("objects")
     shutil.copytree(out, work, dirs_exist_ok=True)
-    return work, run_objects(root, work, FAST)
+    return work, run_objects(root, work, FAST, settle=SETTLE)
 
 
 def f1_to_truth(mesh, pose, truth_mesh):
@@ -123,7 +125,7 @@ def test_a_candidates_own_gaussians_are_placed_with_it(observed, tmp_path):
     root, out, scene, _ = observed
     shutil.copytree(out, tmp_path, dirs_exist_ok=True)
     only = ObjectsConfig(**{**FAST.__dict__, "generators": ("external:gen_a",)})
-    first = run_objects(root, tmp_path, only)["objects"][0]
+    first = run_objects(root, tmp_path, only, settle=SETTLE)["objects"][0]
     assert first["candidate"] == "external:gen_a" and first["visual_info"]["source"] == "candidate"
     placed = transform_splats(read_gaussian_ply(tmp_path / first["visual"]), np.asarray(first["pose"]))
     _, dist, _ = trimesh.proximity.closest_point(scene.objects[0].world_mesh(), placed.means.astype(np.float64))
@@ -143,11 +145,11 @@ def test_strict_rejects_objects_with_failed_checks_and_writes_no_asset(observed,
     root, out, _, _ = observed
     shutil.copytree(out, tmp_path, dirs_exist_ok=True)
     impossible = ObjectsConfig(**{**FAST.__dict__, "max_residual": 1e-9, "generators": ("primitive",)})
-    kept = run_objects(root, tmp_path, impossible)
+    kept = run_objects(root, tmp_path, impossible, settle=SETTLE)
     assert all(o["status"] == "accepted" and o["unresolved_checks"] == ["registration"] for o in kept["objects"])
     assert all("--strict" in o["reason"] for o in kept["objects"])
     shutil.rmtree(tmp_path / "objects")
-    strict = run_objects(root, tmp_path, impossible, strict=True)
+    strict = run_objects(root, tmp_path, impossible, strict=True, settle=SETTLE)
     for o in strict["objects"]:
         assert o["status"] == "rejected" and "registration" in o["reason"] and o["mesh"] is None
     assert not (tmp_path / "objects").exists()
@@ -160,13 +162,13 @@ def test_bad_instances_are_recorded_and_the_scene_goes_on(observed, tmp_path):
     ids = [i["id"] for i in manifest["instances"]]
     (tmp_path / manifest["instances"][0]["points"]).write_bytes(b"not an npz")
     few = ObjectsConfig(**{**FAST.__dict__, "generators": ("primitive",), "min_points": 10**6})
-    result = run_objects(root, tmp_path, few)
+    result = run_objects(root, tmp_path, few, settle=SETTLE)
     assert [o["id"] for o in result["objects"]] == ids
     assert result["objects"][0]["status"] == "failed" and "unreadable" in result["objects"][0]["reason"]
     assert {"pose", "mesh", "visual", "checks", "candidates", "drop_test"} <= set(result["objects"][0])
     assert all(o["status"] == "failed" and "too few observed points" in o["reason"] for o in result["objects"][1:])
     with pytest.raises(SceneInputError, match="instances"):
-        run_objects(root, tmp_path / "empty", FAST)
+        run_objects(root, tmp_path / "empty", FAST, settle=SETTLE)
 
 
 @pytest.mark.slow

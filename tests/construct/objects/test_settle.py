@@ -8,6 +8,7 @@ import trimesh
 from phirie_jax.construct.objects.checks import rank
 from phirie_jax.construct.objects.stage import settle_candidates
 from phirie_jax.construct.physics.config import PhysicsConfig
+from phirie_jax.construct.physics.settling import candidate_settler
 
 
 class _Mesh:
@@ -34,7 +35,7 @@ def test_a_cone_on_its_tip_ranks_below_an_upright_box_despite_a_better_residual(
     upright[2, 3] = 0.05
     entries = [_entry("cone", tip_down, residual=0.001), _entry("box", upright, residual=0.005)]
     settle_candidates(entries, [_Mesh("cone", cone), _Mesh("box", box)], np.array([0.0, 0.0, 1.0]), None,
-                      PhysicsConfig())
+                      candidate_settler(PhysicsConfig()))
     by_name = {e["name"]: e for e in entries}
     assert by_name["cone"]["checks"]["settling"]["passed"] is False
     assert by_name["cone"]["checks"]["settling"]["value"] >= 0.03

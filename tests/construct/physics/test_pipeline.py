@@ -11,6 +11,7 @@ import pytest
 from phirie_jax.construct.objects.config import ObjectsConfig, RegistrationConfig
 from phirie_jax.construct.objects.stage import run_objects
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
+from phirie_jax.construct.physics.settling import candidate_settler
 from phirie_jax.construct.physics.stage import run_physics
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.observe.config import ObserveConfig
@@ -31,7 +32,7 @@ def test_constructed_objects_become_a_loadable_scene_with_drop_tests(tmp_path):
     write_gaussian_ply(root / "point_cloud.ply", scene.capture.data)
     out = tmp_path / "out"
     run_observe(root, out, ObserveConfig(pixel_stride=1, mask_erosion_px=1), masks="files")
-    run_objects(root, out, FAST_OBJECTS)
+    run_objects(root, out, FAST_OBJECTS, settle=candidate_settler())
     manifest = run_physics(root, out, PhysicsConfig(drop_test=DropTestConfig(backend="mjx")))
     on_disk = json.loads((out / "manifest.json").read_text())
     assert on_disk["objects"] == manifest["objects"]

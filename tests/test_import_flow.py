@@ -1,0 +1,95 @@
+"""Imports follow the pipeline (DESIGN.md "Layout"): kernels ← shared records ← io ← observe ←
+construct (objects ← physics ← background) ← interact ← pipeline ← commands. A module may import
+its own layer or an earlier one, never a later one; lazy imports inside functions count too."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# (module prefix, layer): the longest matching prefix decides a module's layer.
+LAYERS = (
+    ("kernels", 0),
+    ("phirie_jax.errors", 1), ("phirie_jax.types", 1), ("phirie_jax.geometry", 1), ("phirie_jax.layout", 1),
+    ("phirie_jax.io", 2),
+    ("phirie_jax.manifest", 3), ("phirie_jax.render", 3),
+    ("phirie_jax.frame", 4), ("phirie_jax.synthetic", 4),
+    ("phirie_jax.observe", 5),
+    ("phirie_jax.construct.objects", 6),
+    ("phirie_jax.construct.physics", 7),
+    ("phirie_jax.construct.background", 8),
+    ("phirie_jax.interact", 9),
+    ("phirie_jax.pipeline", 10),
+    ("phirie_jax.info", 11), ("phirie_jax.demo", 11), ("phirie_jax.cli", 11),
+)
+PACKAGE_ROOTS = ("phirie_jax", "kernels")
+CONTAINERS = ("phirie_jax", "phirie_jax.construct")  # packages that only group others: they import nothing
+
+
+def layer(module: str) -> int | None:
+    best = None
+    for prefix, level in LAYERS:
+        if (module == prefix or module.startswith(prefix + ".")) and (best is None or len(prefix) > len(best[0])):
+            best = (prefix, level)
+    return None if best is None else best[1]
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imported_modules(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import of a project module in the file, including ``from X import
+    submodule`` (resolved to X.submodule when that is a module of ours)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.lineno, node.module))
+            for alias in node.names:
+                sub = f"{node.module}.{alias.name}"
+                as_path = ROOT.joinpath(*sub.split("."))
+                if as_path.with_suffix(".py").is_file() or (as_path / "__init__.py").is_file():
+                    found.append((node.lineno, sub))
+    return [(line, m) for line, m in found if m.split(".")[0] in PACKAGE_ROOTS]
+
+
+def package_files() -> list[Path]:
+    return sorted(p for root in PACKAGE_ROOTS for p in (ROOT / root).rglob("*.py"))
+
+
+def test_every_module_has_a_layer():
+    missing = [module_name(p) for p in package_files()
+               if layer(module_name(p)) is None and module_name(p) not in CONTAINERS]
+    assert not missing, f"modules outside the layer table (add them to LAYERS): {missing}"
+    for name in CONTAINERS:
+        path = ROOT.joinpath(*name.split("."), "__init__.py")
+        assert imported_modules(path) == [], f"{name} only groups its subpackages"
+
+
+def test_no_import_goes_against_the_flow():
+    backward = []
+    for path in package_files():
+        own = layer(module_name(path))
+        for line, target in imported_modules(path):
+            theirs = layer(target)
+            if theirs is not None and own is not None and theirs > own:
+                backward.append(f"{path.relative_to(ROOT)}:{line} imports {target}")
+    assert not backward, "imports against the pipeline's flow:\n" + "\n".join(backward)
+
+
+@pytest.mark.parametrize("source, expected", [("from phirie_jax.interact.environment import Environment", True),
+                                              ("from phirie_jax.construct import physics", True),
+                                              ("from phirie_jax.io.ply import read_gaussian_ply", False)])
+def test_the_check_sees_a_backward_edge(tmp_path, source, expected):
+    """The walker finds late imports, plain or as a submodule of a package, in a low-layer module."""
+    fake = tmp_path / "probe.py"
+    fake.write_text(f"def f():\n    {source}\n")
+    targets = [m for _, m in imported_modules(fake)]
+    assert any((layer(m) or 0) > layer("phirie_jax.observe") for m in targets) == expected
