@@ -1,6 +1,6 @@
 """The background branch on synthetic scenes, against the true background (hidden tabletop included).
 
-    python experiments/background_eval.py --seeds 7001 7002 7003 --scene-root /tmp/bg_eval/scenes \\
+    python -m experiments.background_eval --seeds 7001 7002 7003 --scene-root /tmp/bg_eval/scenes \\
         --work /tmp/bg_eval/work --out experiments/results/background_eval.json
 
 Per seed: the ``default`` scene is synthesized (if missing), observed (mask files, scan mesh) and

@@ -26,8 +26,8 @@ For each candidate count (default 1, 64, 256, 1024):
 - ``solver``: our solver settings (``DropTestConfig``: 4 iterations, 4 line-search, tol 1e-6) against MuJoCo's
   defaults (100, 50, 1e-8): C on the largest set, MJX on 64 of its cases (verdicts, drift, time).
 
-    python experiments/bench_droptest.py --out experiments/results/bench_droptest_cpu.json
-    python experiments/bench_droptest.py --counts 1 64 256 1024 4096 --buckets 1 4 16   # a GPU
+    python -m experiments.bench_droptest --out experiments/results/bench_droptest_cpu.json
+    python -m experiments.bench_droptest --counts 1 64 256 1024 4096 --buckets 1 4 16   # a GPU
 """
 
 from __future__ import annotations
@@ -45,8 +45,6 @@ from pathlib import Path
 import jax
 import mujoco
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phirie_jax.construct.physics import mjx_batch  # noqa: E402
 from phirie_jax.construct.physics.collision import hull_part  # noqa: E402

@@ -5,7 +5,7 @@ worlds × cameras rasterization), each against looping the single environment ov
 same worlds and cameras, measured in the same run. Compile times are reported apart from
 run times (first call vs. the median of later calls).
 
-    python experiments/bench_env.py OUT_DIR [--worlds 1 8 32] [--cameras 4]
+    python -m experiments.bench_env OUT_DIR [--worlds 1 8 32] [--cameras 4]
 
 OUT_DIR is a `phirie convert` output folder (scene.xml, background.ply, objects/...).
 """
@@ -22,8 +22,6 @@ from pathlib import Path
 
 import jax
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phirie_jax.interact.batched import BatchedEnvironment  # noqa: E402
 from phirie_jax.interact.environment import Environment  # noqa: E402

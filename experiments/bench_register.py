@@ -21,7 +21,7 @@ of ``--repeats`` after a warm-up, ``block_until_ready``):
   ours batched (vmap) vs the loop a user would write with Open3D
   (``registration_icp`` per hypothesis; it builds its KD-tree inside each call).
 
-    python experiments/bench_register.py --out experiments/results/bench_register_cpu.json
+    python -m experiments.bench_register --out experiments/results/bench_register_cpu.json
 """
 
 from __future__ import annotations
@@ -37,8 +37,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from kernels.chamfer import build_grid, nearest_grid, nearest_sq  # noqa: E402
 from kernels.registration import UP_AXES, SearchSpec, axis_rotation, hypothesis_energy, icp, place, register, yaw_matrix  # noqa: E402

@@ -21,15 +21,12 @@ import argparse
 import dataclasses
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from kernels.composite import TileGrid  # noqa: E402
 from kernels.gaussians import Gaussians  # noqa: E402

@@ -2,7 +2,7 @@
 mesh-volume ratio and time, with the physics stage's settings (threshold 0.05, ≤ 16 parts, hulls
 ≤ 64 vertices); prints one JSON object.
 
-    python experiments/coacd_parts.py --out experiments/results/coacd_parts.json
+    python -m experiments.coacd_parts --out experiments/results/coacd_parts.json
 """
 
 from __future__ import annotations
@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phirie_jax.construct.physics.collision import collision_from_mesh  # noqa: E402
 from phirie_jax.construct.physics.config import PhysicsConfig  # noqa: E402

@@ -17,7 +17,7 @@ against MuJoCo C with MuJoCo's default solver (100 iterations, 50 line-search, t
 MJX against MuJoCo C with the same setting (the issue's ≥ 98 % agreement). MuJoCo C runs in a
 process pool here (only its verdicts are used; ``bench_droptest.py`` times it).
 
-    python experiments/droptest_tuning.py --solver newton:20,10 newton:4,4 cg:10,4:sparse --unroll 1 4 \\
+    python -m experiments.droptest_tuning --solver newton:20,10 newton:4,4 cg:10,4:sparse --unroll 1 4 \\
         --xla-flags default "xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUSTOM_CALL,WHILE,CONDITIONAL"
 """
 
@@ -34,8 +34,6 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phirie_jax.construct.physics.collision import hull_part  # noqa: E402
 from phirie_jax.construct.physics.config import DropTestConfig  # noqa: E402

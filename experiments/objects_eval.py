@@ -1,6 +1,6 @@
 """Object construction: the paper's main-table rows on synthetic scenes and on real YCB meshes.
 
-    python experiments/objects_eval.py --seeds 5001 5002 5003 5004 --ycb-seeds 1 2 3 \\
+    python -m experiments.objects_eval --seeds 5001 5002 5003 5004 --ycb-seeds 1 2 3 \\
         --scene-root /tmp/scenes --work /tmp/objects_eval --out experiments/results/objects_eval.json
 
 Scenes: synthetic ``default`` tabletops (synthesized under ``--scene-root/eval<seed>`` when
@@ -40,13 +40,10 @@ import json
 import platform
 import shutil
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phirie_jax.construct.objects.config import ObjectsConfig  # noqa: E402
 from phirie_jax.observe.config import ObserveConfig  # noqa: E402

@@ -2,7 +2,7 @@
 paper's input-requirements rows {mask files, automatic} × {scan mesh, splat-derived surface},
 time per stage, and the TSDF backends (Open3D vs the JAX kernel) on the same rendered depth.
 
-    python experiments/observe_eval.py --seeds 2001 2002 2003 2004 --scene-root /tmp/scenes \\
+    python -m experiments.observe_eval --seeds 2001 2002 2003 2004 --scene-root /tmp/scenes \\
         --work /tmp/observe_eval --out experiments/results/observe_eval.json
 
 Scenes missing under ``--scene-root/eval<seed>`` are synthesized (``default`` preset). The

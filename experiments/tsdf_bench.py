@@ -3,9 +3,9 @@
 Two steps, so the JAX part can run on a machine with only jax + numpy (a GPU box):
 
     # here: render a scene's depth once, choose the blocks, save everything the kernel needs
-    python experiments/tsdf_bench.py make SCENE_DIR data.npz
+    python -m experiments.tsdf_bench make SCENE_DIR data.npz
     # anywhere: time the kernel (compile and run separately), and Open3D when it is installed
-    python experiments/tsdf_bench.py time data.npz --out result.json
+    python -m experiments.tsdf_bench time data.npz --out result.json
 
 Prints and writes JSON: compile seconds, run seconds (median of repeats, block_until_ready),
 voxel updates per second (voxels × frames / run time).

@@ -16,10 +16,10 @@ MODULES = ("phirie_jax.construct.physics.droptest", "phirie_jax.construct.physic
 def test_benchmark_modules_import_without_the_mesh_stack():
     done = run_without(BLOCKED, MODULES, then="""
 import runpy
-for script in ("bench_droptest.py", "droptest_tuning.py"):
+for script in ("bench_droptest", "droptest_tuning"):
     sys.argv = [script, "--help"]
     try:
-        runpy.run_path(f"experiments/{script}", run_name="__main__")
+        runpy.run_module(f"experiments.{script}", run_name="__main__")
     except SystemExit as e:
         assert e.code == 0, (script, e.code)
 """)
