@@ -169,7 +169,7 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
-            surface: Path | None = None, strict: bool = False, config: ConvertConfig = ConvertConfig()) -> None:
+            surface: Path | None = None, config: ConvertConfig = ConvertConfig()) -> None:
     """Scene → interactive scene: observe → objects → physics → background, each adding to
     OUT/manifest.json (instances; objects with meshes, visual Gaussians, checks; collision,
     scene.xml, URDFs, drop tests; background.ply with the objects removed and what they
@@ -181,7 +181,6 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         masks: mask source for observation: "files", "auto" or an external segmenter's folder.
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: scene surface mesh to use instead of the one found.
-        strict: reject an object whose best candidate fails a check instead of keeping it.
         config: every stage's parameters (defaults: the paper's numbers).
     """
     from rich.console import Console
@@ -191,7 +190,7 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     console = Console()
     with console.status("converting") as status:
         manifest = run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface,
-                               strict=strict, progress=lambda stage: status.update(f"converting: {stage}"))
+                               progress=lambda stage: status.update(f"converting: {stage}"))
     _print_instances(manifest)
     _print_objects(manifest)
     _print_background(manifest)

@@ -26,9 +26,9 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_text
+from phirie_jax.layout import MANIFEST, resolve
 
 SCHEMA = "phirie/1"
-FILENAME = "manifest.json"
 
 
 def _plain(value: Any) -> Any:
@@ -65,12 +65,12 @@ class Manifest:
 
     @property
     def path(self) -> Path:
-        return self.out_dir / FILENAME
+        return self.out_dir / MANIFEST
 
     @classmethod
     def load_or_create(cls, out_dir: str | Path) -> Manifest:
         """The folder's manifest when there is one (schema checked), else an empty one."""
-        path = Path(out_dir) / FILENAME
+        path = Path(out_dir) / MANIFEST
         if not path.exists():
             return cls(out_dir)
         try:
@@ -95,6 +95,50 @@ class Manifest:
         if value is None:
             raise SceneInputError(self.path, section, f"missing (run {written_by} first: it writes the {section})")
         return value
+
+    # --- what earlier stages wrote: typed reads, one place that knows the sections' shapes ---
+
+    def instances(self) -> list[dict]:
+        """The observed instances (``instances``; the observation stage writes them)."""
+        return self.require("instances", "the observation stage")
+
+    def objects(self) -> list[dict]:
+        """Every object entry (``objects``; the object-construction stage writes them)."""
+        return self.require("objects", "the object-construction stage")
+
+    def accepted_objects(self) -> list[dict]:
+        return [o for o in self.objects() if o.get("status") == "accepted"]
+
+    def categories(self) -> dict[int, str | None]:
+        """Instance id → category (None when the observation did not name one)."""
+        return {inst["id"]: inst.get("category") for inst in self.data.get("instances") or []}
+
+    def up(self) -> np.ndarray:
+        """(3,) the scene's up, as decided once (``phirie_jax.frame``) and recorded in ``frame``.
+        Folders written before the ``frame`` section keep it under ``construct.gravity``; +z
+        when no stage decided one."""
+        frame = self.data.get("frame") or (self.data.get("construct") or {}).get("gravity") or {}
+        up = frame.get("up")
+        return np.asarray(up if up is not None else (0.0, 0.0, 1.0), np.float64)
+
+    def observed_up(self) -> np.ndarray | None:
+        """(3,) the observation stage's own up estimate (automatic masks), when it made one."""
+        up = ((self.data.get("observe") or {}).get("auto") or {}).get("up")
+        return None if up is None else np.asarray(up, np.float64)
+
+    def scene_surface(self) -> Path | None:
+        """The scene surface the stages work on: the object stage's choice, else the observation
+        stage's (scan mesh or splat-derived), as a path to open; None when there is none."""
+        for path in ((self.data.get("construct") or {}).get("surface"),
+                     ((self.data.get("observe") or {}).get("surface") or {}).get("path")):
+            if path:
+                return resolve(self.out_dir, path)
+        return None
+
+    def support_heights(self) -> dict[int, float]:
+        """Object id → height of the support it stands on (gravity frame), from the object stage."""
+        return {s["id"]: float(s["height"]) for s in (self.data.get("construct") or {}).get("supports") or []
+                if s.get("height") is not None}
 
     def set(self, section: str, value: Any) -> None:
         """Replace one section (``schema`` and ``timings`` have their own methods)."""

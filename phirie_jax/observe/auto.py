@@ -26,6 +26,7 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from phirie_jax.frame import camera_up
 from phirie_jax.observe.config import AutoMaskConfig
 from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, camera_problem
 from phirie_jax.observe.raycast import Raycaster
@@ -68,14 +69,6 @@ class AutoSegmentation:
     objects: list[dict]     # accepted clusters: id, support, points, extent, base gap
     rejected: list[dict]    # clusters left out, with the reason
     up: np.ndarray          # (3,)
-
-
-def camera_up(cameras: list[Camera]) -> np.ndarray:
-    """Mean image-up direction (−y of OpenCV cameras) in world coordinates; +z without cameras."""
-    ups = [-c.world_to_camera[1, :3] for c in cameras]
-    mean = np.mean(ups, axis=0) if ups else np.zeros(3)
-    norm = np.linalg.norm(mean)
-    return mean / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
 
 
 def observed_samples(raycaster: Raycaster, cameras: list[Camera], stride: int, voxel: float):

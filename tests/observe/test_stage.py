@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from phirie_jax.errors import SceneInputError
+from phirie_jax.frame import camera_up
 from phirie_jax.manifest import SCHEMA, Manifest
-from phirie_jax.observe.auto import camera_up, observed_samples, segment
+from phirie_jax.observe.auto import observed_samples, segment
 from phirie_jax.observe.config import AutoMaskConfig, ObserveConfig
 from phirie_jax.observe.evaluate import evaluate, iou_matrix, match
 from phirie_jax.observe.raycast import Raycaster

@@ -1,9 +1,5 @@
-"""The gravity frame and each instance's support plane.
-
-Registration and the built-in generators work in a gravity frame: world rotated so that
-"up" is +z (no translation). Up comes from the observation stage when it estimated one
-(automatic masks), else from the cameras' mean image-up; it is then refined by the
-normal of the surface the instances stand on.
+"""Each instance's support plane (in the gravity frame of ``phirie_jax.frame``), whose normals
+also refine up.
 
 Support of an instance: rays cast straight down onto the scene surface around its
 footprint (a ring 1.5–6 cm outside Q's robust box) hit what it stands on. Of the hits
@@ -19,7 +15,7 @@ import dataclasses
 
 import numpy as np
 
-from phirie_jax.geometry import rotation_to_z
+from phirie_jax.frame import MIN_PLANE_HITS, GravityFrame, refine_frame
 
 RING_INNER, RING_OUTER = 0.015, 0.06   # ring around the footprint, metres
 RING_RAYS = 24                         # rays per side of the ring's sampling grid
@@ -27,27 +23,6 @@ ABOVE_BASE = 0.01                      # hits up to this above Q's base height c
 MAX_HIDDEN_BASE = 0.15                 # ... and down to this below it
 HEIGHT_BIN = 0.005                     # the support is the densest bin of hit heights
 SUPPORT_BAND = 0.01                    # hits within this of that bin are the support's
-MIN_PLANE_HITS = 20                    # to refine up from the support's normal
-MAX_UP_CHANGE_DEG = 15.0               # refinement never moves up more than this
-
-
-@dataclasses.dataclass(frozen=True)
-class GravityFrame:
-    rotation: np.ndarray  # (3, 3) world → gravity (x_g = R x_w); R @ up = +z
-    up: np.ndarray        # (3,) world up
-    source: str           # where up came from
-
-    def to_gravity(self, points: np.ndarray) -> np.ndarray:
-        return points @ self.rotation.T
-
-    def to_world(self, points: np.ndarray) -> np.ndarray:
-        return points @ self.rotation
-
-    def matrix(self) -> np.ndarray:
-        """(4, 4) gravity → world."""
-        out = np.eye(4)
-        out[:3, :3] = self.rotation.T
-        return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,20 +69,7 @@ def find_support(q_gravity: np.ndarray, frame: GravityFrame, raycaster=None) -> 
     return Support(base, "observed points", 0, np.array([0.0, 0.0, 1.0]))
 
 
-def gravity_frame(up_guess: np.ndarray, source: str) -> GravityFrame:
-    up = np.asarray(up_guess, np.float64)
-    up = up / np.linalg.norm(up)
-    return GravityFrame(rotation_to_z(up), up, source)
-
-
-def refine_frame(frame: GravityFrame, supports: list[Support]) -> GravityFrame:
-    """Up refined to the mean normal of the fitted supports (when close to the guess)."""
-    normals = [s.normal * s.hits for s in supports if s.source == "surface" and s.hits >= MIN_PLANE_HITS]
-    if not normals:
-        return frame
-    n = np.sum(normals, axis=0)
-    n /= np.linalg.norm(n)
-    if np.degrees(np.arccos(np.clip(n[2], -1, 1))) > MAX_UP_CHANGE_DEG:
-        return frame
-    up = frame.to_world(n[None])[0]
-    return GravityFrame(rotation_to_z(up), up / np.linalg.norm(up), frame.source + "+support plane")
+def refined_by_supports(frame: GravityFrame, supports: list[Support]) -> GravityFrame:
+    """``frame.refine_frame`` with the normals of the supports fitted on the scene surface."""
+    fitted = [s for s in supports if s.source == "surface"]
+    return refine_frame(frame, np.array([s.normal for s in fitted]).reshape(-1, 3), np.array([s.hits for s in fitted]))

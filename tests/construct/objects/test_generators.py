@@ -9,7 +9,8 @@ import trimesh
 from phirie_jax.construct.objects.candidates import builtin, mesh_problem
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.generators import InstanceInput, extrude, primitive
-from phirie_jax.construct.objects.support import GravityFrame, Support, find_support, gravity_frame, refine_frame
+from phirie_jax.construct.objects.support import Support, find_support, refined_by_supports
+from phirie_jax.frame import GravityFrame, gravity_frame
 from phirie_jax.geometry import rotation_to_z
 from phirie_jax.observe.raycast import Raycaster
 from tests.kernels.shapes import box_surface
@@ -90,7 +91,7 @@ def test_rotation_to_z_and_support_refinement_on_a_tilted_table():
     frame = gravity_frame(np.array([0, 0, 1.0]), "guess")
     support = find_support(frame.to_gravity(q_world), frame, caster)
     assert support.source == "surface" and support.hits > 20
-    refined = refine_frame(frame, [support])
+    refined = refined_by_supports(frame, [support])
     assert np.degrees(np.arccos(refined.up @ true_up)) < 0.2
     again = find_support(refined.to_gravity(q_world), refined, caster)
     assert again.height == pytest.approx(true_up @ [0, 0, 0.5], abs=1e-3)  # the plane through (0, 0, 0.5)

@@ -4,6 +4,7 @@ broken file; manifest contract, asset files, placement accuracy, strict mode, ba
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -149,7 +150,7 @@ def test_strict_rejects_objects_with_failed_checks_and_writes_no_asset(observed,
     assert all(o["status"] == "accepted" and o["unresolved_checks"] == ["registration"] for o in kept["objects"])
     assert all("--strict" in o["reason"] for o in kept["objects"])
     shutil.rmtree(tmp_path / "objects")
-    strict = run_objects(root, tmp_path, impossible, strict=True, settle=SETTLE)
+    strict = run_objects(root, tmp_path, dataclasses.replace(impossible, strict=True), settle=SETTLE)
     for o in strict["objects"]:
         assert o["status"] == "rejected" and "registration" in o["reason"] and o["mesh"] is None
     assert not (tmp_path / "objects").exists()
