@@ -21,6 +21,7 @@ Outputs (paths relative to ``out_dir``):
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import time
 from collections import Counter
@@ -38,7 +39,6 @@ from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.lift import Proposal, lift_view
 from phirie_jax.observe.masks import (
     ViewFailure,
-    ViewMasks,
     camera_problem,
     external_masks,
     file_masks,
@@ -209,6 +209,51 @@ def instance_record(instance_id: int, members: list[Proposal], mask_paths: dict[
             "single_view_points_dropped": dropped}
 
 
+@dataclasses.dataclass
+class _Lifted:
+    proposals: list[Proposal] = dataclasses.field(default_factory=list)
+    rejected: list[dict] = dataclasses.field(default_factory=list)   # proposals left out, with the reason
+    failures: list[dict] = dataclasses.field(default_factory=list)   # views that gave no masks
+    mask_paths: dict[int, str] = dataclasses.field(default_factory=dict)  # view → its mask file
+
+
+def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Raycaster, config: ObserveConfig,
+                out_dir: Path, manifest: Manifest) -> _Lifted:
+    """Each view's masks (made as they are asked for) lifted onto the surface; timings
+    ``observe.masks`` and ``observe.lift``."""
+    lifted, iterator = _Lifted(), iter(views)
+    while True:
+        with manifest.timed("observe.masks"):
+            item = next(iterator, None)
+        if item is None:
+            return lifted
+        if isinstance(item, ViewFailure):
+            lifted.failures.append(item.as_dict())
+            continue
+        with manifest.timed("observe.lift"):
+            lifted.mask_paths[item.view] = (_write_mask(out_dir, cameras[item.view], item.labels)
+                                            if source == "auto" else item.path)
+            found, dropped = lift_view(raycaster, cameras[item.view], item, config)
+        lifted.proposals += found
+        lifted.rejected += dropped
+
+
+def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path,
+               manifest: Manifest) -> tuple[list[dict], list[dict], list[dict]]:
+    """Voxel association of the lifted proposals → (instance records, failed instances, rejected)."""
+    with manifest.timed("observe.associate"):
+        assoc = associate(lifted.proposals, config.voxel, config.overlap, config.min_views)
+    instances, failed = [], []
+    with manifest.timed("observe.write"):
+        for instance_id, idx in assoc.groups:
+            try:
+                instances.append(instance_record(instance_id, [lifted.proposals[i] for i in idx], lifted.mask_paths,
+                                                 cameras, source, config, out_dir))
+            except (OSError, ValueError) as err:
+                failed.append({"id": instance_id, "reason": f"{type(err).__name__}: {err}"})
+    return instances, failed, [{k: v for k, v in r.items() if k != "proposal"} for r in assoc.rejected]
+
+
 def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
                 masks: str | Path | None = None, scene: SceneInput | None = None) -> dict:
     """Run Scene Observation on a scene folder; write ``out_dir`` (see the module docstring).
@@ -221,60 +266,24 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
     out_dir = Path(out_dir)
     config = config or ObserveConfig()
     manifest = Manifest.load_or_create(out_dir)
-    start = time.perf_counter()
-    scene = scene or load_scene(scene_dir)
-    cameras = scene.require_cameras()
-    if masks is None:
-        masks = "files" if (scene.masks is not None or scene.segments_anno is not None) else "auto"
-    with manifest.timed("observe.surface"):
-        surface, surface_record = scene_surface(scene, config, out_dir)
-        raycaster = Raycaster(surface.vertices, surface.faces)
-    record: dict = {"surface": surface_record}
-    t_mask = time.perf_counter()
-    views, source = mask_views(scene, masks, raycaster, config, record)
-    mask_s, lift_s = time.perf_counter() - t_mask, 0.0
-    proposals, rejected, failures, mask_paths = [], [], [], {}
-    iterator = iter(views)
-    while True:
-        t0 = time.perf_counter()
-        item = next(iterator, None)
-        mask_s += time.perf_counter() - t0
-        if item is None:
-            break
-        if isinstance(item, ViewFailure):
-            failures.append(item.as_dict())
-            continue
-        assert isinstance(item, ViewMasks)
-        t0 = time.perf_counter()
-        if source == "auto":
-            mask_paths[item.view] = _write_mask(out_dir, cameras[item.view], item.labels)
-        else:
-            mask_paths[item.view] = item.path
-        found, dropped = lift_view(raycaster, cameras[item.view], item, config)
-        proposals += found
-        rejected += dropped
-        lift_s += time.perf_counter() - t0
-    manifest.record_timing("observe.masks", mask_s)
-    manifest.record_timing("observe.lift", lift_s)
-
-    with manifest.timed("observe.associate"):
-        assoc = associate(proposals, config.voxel, config.overlap, config.min_views)
-    instances, failed = [], []
-    with manifest.timed("observe.write"):
-        for instance_id, idx in assoc.groups:
-            try:
-                instances.append(instance_record(instance_id, [proposals[i] for i in idx], mask_paths, cameras,
-                                                 source, config, out_dir))
-            except (OSError, ValueError) as err:
-                failed.append({"id": instance_id, "reason": f"{type(err).__name__}: {err}"})
-    record.update(masks={"source": source, "path": None if source != "external" else str(masks),
-                         "failed_views": failures},
-                  proposals=len(proposals),
-                  rejected_proposals=rejected + [{k: v for k, v in r.items() if k != "proposal"}
-                                                 for r in assoc.rejected],
-                  failed_instances=failed, config=to_dict(config))
-    manifest.set("instances", instances)
-    manifest.set("observe", record)
-    manifest.record_timing("observe", time.perf_counter() - start)
+    with manifest.timed("observe"):
+        scene = scene or load_scene(scene_dir)
+        cameras = scene.require_cameras()
+        if masks is None:
+            masks = "files" if (scene.masks is not None or scene.segments_anno is not None) else "auto"
+        with manifest.timed("observe.surface"):
+            surface, surface_record = scene_surface(scene, config, out_dir)
+            raycaster = Raycaster(surface.vertices, surface.faces)
+        record: dict = {"surface": surface_record}
+        with manifest.timed("observe.masks"):
+            views, source = mask_views(scene, masks, raycaster, config, record)
+        lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
+        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest)
+        record.update(masks={"source": source, "path": None if source != "external" else str(masks),
+                             "failed_views": lifted.failures},
+                      proposals=len(lifted.proposals), rejected_proposals=lifted.rejected + rejected,
+                      failed_instances=failed, config=to_dict(config))
+        manifest.set("instances", instances)
+        manifest.set("observe", record)
     manifest.write()
     return manifest.data
