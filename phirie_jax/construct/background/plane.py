@@ -1,12 +1,15 @@
 """Support plane and the fill grid of one removed object (host side; the fit is ``kernels.fill``).
 
+Names in ``code`` are fields of ``PlaneConfig`` (the plane) and ``FillConfig`` (the fill).
+
 1. Ring: kept Gaussian centres (opaque enough) whose horizontal distance from the object's
    footprint (Q_i and the placed asset, rasterized on a ``grid`` raster in the gravity frame)
    is within [``ring_inner``, ``ring_outer``] and whose height is within ``ring_height`` of
    the object's base.
 2. Plane: RANSAC over the ring (``ransac_iterations`` seeded hypotheses, inliers within
-   ``plane_threshold``, normal within ``max_tilt_deg`` of up, passing within
-   ``plane_base_tolerance`` of the object's base), then least-squares refits on the inliers. Too few ring points or inliers, or no plane near up: an *unsupported region*.
+   ``threshold``, normal within ``max_tilt_deg`` of up, passing within ``base_tolerance`` of
+   the object's base), then least-squares refits on the inliers. Too few ring points or
+   inliers, or no plane near up: an *unsupported region*.
 3. Cells of a ``grid`` lattice on the plane. A cell is *covered* when a kept Gaussian of the
    plane's slab lies within ``cover_factor`` × their median spacing. A cell is *supported* when
    it lies inside the closure of what is known to be plane there: covered cells, the object's
@@ -63,7 +66,7 @@ def fit_plane(points: np.ndarray, up: np.ndarray, config: BackgroundConfig, anch
               ) -> tuple[Plane | None, str | None]:
     """Robust plane of ``points`` (P, 3): RANSAC then least-squares refits. (None, reason) if none.
 
-    anchor: the object's base point; a support plane passes within ``plane_base_tolerance`` of it
+    anchor: the object's base point; a support plane passes within ``PlaneConfig.base_tolerance`` of it
     (a table's underside, parallel and a few cm below, often has more points in the ring).
     """
     n_pts = len(points)
@@ -134,7 +137,10 @@ def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, gri
 
 def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray, up: np.ndarray,
                 base: float, config: BackgroundConfig) -> np.ndarray:
-    """Indices of kept Gaussians in the ring around the footprint (module docstring, 1)."""
+    """Indices of kept Gaussians in the ring around the footprint (module docstring, 1).
+
+    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), up (3,) unit, base: the object's base
+    height along up.."""
 
     rot = rotation_to_z(up)
     obj_g = obj_points @ rot.T
@@ -179,7 +185,10 @@ class FillRegion:
 
 def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray,
                 removed_means: np.ndarray, config: BackgroundConfig) -> FillRegion:
-    """The exposed cells of the plane under one object, grown by the margin (module docstring, 3)."""
+    """The exposed cells of the plane under one object, grown by the margin (module docstring, 3).
+
+    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), removed_means (R, 3) the object's R_i.
+    """
     from scipy.spatial import cKDTree
 
     u, v = tangent_basis(plane.normal)
