@@ -44,12 +44,14 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax import layout
 from phirie_jax.synthetic.truth import REGION_WEIGHT, background_truth
 
 DEV_SEEDS = (0,)
 HELD_OUT = 12
 HIDDEN_WEIGHT = 0.5  # a pixel shows the hidden tabletop where its Gaussians carry this much weight in the truth
-VARIANTS = {"telea": {"inpaint": "telea"}, "ns": {"inpaint": "ns"}, "init": {"inpaint": "telea", "iterations": 0}}
+# variant → (inpainting method, refinement iterations; None: the default)
+VARIANTS = {"telea": ("telea", None), "ns": ("ns", None), "init": ("telea", 0)}
 
 
 def _scene(root: Path, seed: int) -> Path:
@@ -121,8 +123,17 @@ def _metrics(image, truth, region, hidden) -> dict:
     return out
 
 
+def _variant(inpaint: str, iterations: int | None):
+    """The ``BackgroundConfig`` of a variant."""
+    from phirie_jax.construct.background.config import BackgroundConfig, RefineConfig, TargetsConfig
+
+    refine = RefineConfig() if iterations is None else RefineConfig(iterations=iterations)
+    return BackgroundConfig(targets=TargetsConfig(inpaint=inpaint), refine=refine)
+
+
 def _hole(full_out, kept_out, disk_out, config) -> np.ndarray:
-    """The targets' hole definition (``construct.inpaint.build_frame``) on a full image."""
+    """The targets' hole definition (``construct.background.targets.build_frame``) on a full image.
+    config: a ``TargetsConfig``."""
     from scipy import ndimage
 
     region = np.asarray(full_out.features)[..., 0] >= config.region_weight
@@ -148,12 +159,12 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path) -> dict:
     objects_s = time.perf_counter() - t0
     results = {"seed": seed, "objects": [{"id": o["id"], "status": o["status"]} for o in manifest["objects"]]}
     runs = {}
-    for name, overrides in VARIANTS.items():
+    for name, (method, iterations) in VARIANTS.items():
         out = work / f"bg{seed}" / name
         shutil.rmtree(out, ignore_errors=True)
         shutil.copytree(base, out)
         t0 = time.perf_counter()
-        m = run_background(scene_dir, out, BackgroundConfig(**overrides))
+        m = run_background(scene_dir, out, _variant(method, iterations))
         wall = time.perf_counter() - t0
         b = m["background"]
         runs[name] = (out, b)
@@ -170,7 +181,7 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path) -> dict:
     t = background_truth(scene_dir)
     capture, labels, truth, hidden_g = t.capture, t.labels, t.truth, t.hidden
     out0, b0 = runs["telea"]
-    result = read_gaussian_ply(out0 / "background.ply")
+    result = read_gaussian_ply(out0 / layout.BACKGROUND)
     kept = result.subset(np.arange(result.num - b0["filled"]))
     from scipy.spatial import cKDTree
 
@@ -188,8 +199,8 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path) -> dict:
     full = _render(capture, cams, bg, removed[:, None].astype(np.float32))
     truth_r = _render(truth, cams, bg, hidden_g[:, None].astype(np.float32))
     kept_r = _render(kept, cams, bg)
-    cfg = BackgroundConfig()
-    fills = {name: read_gaussian_ply(out / "background.ply") for name, (out, _) in runs.items()}
+    cfg = BackgroundConfig().targets
+    fills = {name: read_gaussian_ply(out / layout.BACKGROUND) for name, (out, _) in runs.items()}
     disks = fills["init"].subset(np.arange(fills["init"].num - runs["init"][1]["filled"], fills["init"].num))
     disk_r = _render(disks, cams, bg)
     fill_r = {name: _render(data, cams, bg) for name, data in fills.items()}

@@ -1,7 +1,17 @@
-"""The background stage's config (removal, targets, fill): frozen dataclasses whose defaults are the φ-RIE paper's numbers.
+"""The background stage's config, one frozen dataclass per step, whose defaults are the φ-RIE paper's numbers.
 
 Where the paper gives a number it is the default and the field says so ("paper");
-every other default is ours and the field says why. Lengths are metres, angles degrees.
+every other default is ours and the field says why (the longer notes behind some of them:
+``experiments/results/background_notes.md``). Lengths are metres, angles degrees.
+
+    BackgroundConfig
+      removal   RemovalConfig   R_i = R_obs ∪ R_asset ∪ R_mask          (``removal``)
+      crops     CropConfig      static crop sizes of the render passes  (``views``)
+      plane     PlaneConfig     the robust support plane                (``plane``)
+      fill      FillConfig      the disk lattice on the exposed cells   (``plane``, ``kernels.fill``)
+      targets   TargetsConfig   inpainting targets                      (``targets``)
+      refine    RefineConfig    the Adam fit of the disks               (``refine``, ``kernels.fill``)
+      seed      RANSAC hypotheses and the asset's surface samples
 """
 
 from __future__ import annotations
@@ -10,10 +20,10 @@ import dataclasses
 
 
 @dataclasses.dataclass(frozen=True)
-class BackgroundConfig:
-    """Background branch: coupled source-Gaussian removal, inpainting targets, plane-disk fill.
+class RemovalConfig:
+    """Removal, R_i = R_obs ∪ R_asset ∪ R_mask (``construct.background.removal``).
 
-    Removal, R_i = R_obs ∪ R_asset ∪ R_mask (``construct.removal``):
+    Attributes:
         obs_radius: Gaussians within this of the observed surface Q_i (paper: 3 cm).
         asset_radius: ... within this of the registered asset's surface (paper: 2.4 cm).
         mask_votes: centres inside the expanded bounds projecting inside the instance mask, visible,
@@ -21,55 +31,8 @@ class BackgroundConfig:
         bounds_margin: ours — the expanded bounds are the box of Q_i and the placed asset grown by this.
         mask_views: ours — the instance's largest masks consulted (each is one crop render).
         occlusion_tolerance: ours — a centre more than this behind the depth rendered at its pixel is
-            occluded in that view and does not vote (the paper's code has no occlusion test).
-        remove_statuses: objects with these statuses are removed; the others stay in the background.
-    Targets (``construct.inpaint``):
-        inpaint: "telea" (OpenCV's Telea, the default) or "ns" (Navier–Stokes).
-        inpaint_radius: OpenCV's inpainting neighbourhood, pixels.
-        region_weight: a pixel is in an edit's region where the removed Gaussians' composited weight
-            reaches this (their rendered alpha in the capture).
-        region_dilate_px: the region is grown by this many pixels.
-        loss_ring_px: the fit also covers this many pixels around the region, where the target is the
-            kept scene itself (the new disks must not change what was already right).
-        explained_alpha: inside the region, a pixel the kept Gaussians cover at least this opaquely, at or
-            in front of the support plane (``plane_depth_tolerance``), is kept as rendered, not inpainted.
-        plane_depth_tolerance: metres.
-        crop_sizes / mask_crop_sizes: static square crop sizes of the target and R_mask passes (pixels).
-        crop_margin_px: pixels around a region in its crop.
-        targets: ours — a folder of externally edited targets replacing ours (format in
-            ``construct.inpaint``); None: OpenCV.
-        write_targets: write the targets (and masks) under ``background/targets/`` for inspection or editing.
-    Support plane (``construct.fill``):
-        ring_inner / ring_outer: the plane is fitted to kept Gaussian centres this far from the object's
-            footprint (ours: 1–8 cm) ...
-        ring_height: ... and within this of the object's base height.
-        plane_threshold: RANSAC inlier distance (ours: 5 mm).
-        ransac_iterations / seed: hypotheses (seeded, deterministic).
-        max_tilt_deg: a support plane's normal is within this of up.
-        plane_base_tolerance: ours — ... and the plane passes this close to the object's base (the
-            construction stage's support height; a table's underside has as many ring points).
-        min_plane_points / min_inlier_fraction: fewer ring points or inliers: an unsupported region.
-        min_opacity: only Gaussians at least this opaque are surface evidence.
-    Fill (``construct.fill``, ``kernels.fill``):
-        grid: disk grid spacing on the plane (paper: 5 mm).
-        margin: ours — the fill covers the exposed footprint grown by this (overlaps the kept surface).
-        cover_factor: ours — a grid cell is covered by the kept surface when a kept plane Gaussian lies
-            within this many times the kept Gaussians' median spacing.
-        slab: kept Gaussians within this of the plane are surface (coverage) and are rendered with the
-            disks in the refinement; the others are fixed front/back layers.
-        disk_sigma / disk_thickness: in-plane σ of a new disk as a fraction of ``grid``; normal σ as a
-            fraction of the in-plane σ (the synthetic capture's own disk shape).
-        max_disk_sigma: the fit keeps a disk's in-plane σ within [¼, this] × ``grid`` (it bounds the
-            pixels a disk can reach, hence the kept Gaussians each step renders).
-        init_opacity: of a new disk.
-        colour_neighbours: disks no target sees take the mean colour of this many nearest kept plane
-            Gaussians ("neighbouring observations").
-        max_disks: per object; more is a failed completion (an implausibly large exposed region).
-    Refinement (``kernels.fill``):
-        iterations: Adam steps on the new disks only.
-        dssim_weight: λ of (1 − λ) L1 + λ D-SSIM (3DGS: 0.2).
-        lr_colour / lr_opacity / lr_offset / lr_scale: learning rates of the SH DC, opacity logit,
-            in-plane offset (tanh-bounded by one grid cell) and in-plane log-scale.
+            occluded in that view and does not vote (the paper's code has no occlusion test; notes).
+        statuses: objects with these statuses are removed; the others stay in the background.
     """
 
     obs_radius: float = 0.03
@@ -78,30 +41,85 @@ class BackgroundConfig:
     bounds_margin: float = 0.02
     mask_views: int = 8
     occlusion_tolerance: float = 0.01
-    remove_statuses: tuple[str, ...] = ("accepted",)
-    inpaint: str = "telea"
-    inpaint_radius: int = 5
-    region_weight: float = 0.02
-    region_dilate_px: int = 2
-    loss_ring_px: int = 4
-    explained_alpha: float = 0.95
-    plane_depth_tolerance: float = 0.01
-    crop_sizes: tuple[int, ...] = (64, 128)
-    mask_crop_sizes: tuple[int, ...] = (64, 128)
-    crop_margin_px: int = 8
-    targets: str | None = None
-    write_targets: bool = True
+    statuses: tuple[str, ...] = ("accepted",)
+
+    def __post_init__(self):
+        if not (self.obs_radius >= 0 and self.asset_radius >= 0 and self.mask_votes >= 1):
+            raise ValueError("background: need obs_radius ≥ 0, asset_radius ≥ 0 and mask_votes ≥ 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class CropConfig:
+    """Static square crop sizes of the render passes (``construct.background.views``): every crop of
+    a pass takes one of these, so the pass compiles once.
+
+    Attributes:
+        target_sizes: crop sizes of the target pass, pixels.
+        mask_sizes: crop sizes of the R_mask pass, pixels.
+        margin_px: pixels around a region (a mask's box, a frame's disks) in its crop.
+    """
+
+    target_sizes: tuple[int, ...] = (64, 128)
+    mask_sizes: tuple[int, ...] = (64, 128)
+    margin_px: int = 8
+
+    def __post_init__(self):
+        if not self.target_sizes or not self.mask_sizes or min(self.target_sizes + self.mask_sizes) < 16:
+            raise ValueError("background: crop sizes must be given and at least one tile (16 px)")
+
+
+@dataclasses.dataclass(frozen=True)
+class PlaneConfig:
+    """The support plane of one removed object (``construct.background.plane``).
+
+    Attributes:
+        ring_inner: the plane is fitted to kept Gaussian centres at least this far from the object's
+            footprint (ours: 1 cm) ...
+        ring_outer: ... and at most this far (ours: 8 cm) ...
+        ring_height: ... and within this of the object's base height.
+        threshold: RANSAC inlier distance (ours: 5 mm).
+        ransac_iterations: RANSAC hypotheses (seeded by ``BackgroundConfig.seed``, deterministic).
+        max_tilt_deg: a support plane's normal is within this of up.
+        base_tolerance: ours — ... and the plane passes this close to the object's base (a table's
+            underside has as many ring points; notes).
+        min_points: fewer ring points: an unsupported region.
+        min_inlier_fraction: fewer inliers than this fraction of the ring: an unsupported region.
+        min_opacity: only Gaussians at least this opaque are surface evidence.
+    """
+
     ring_inner: float = 0.01
     ring_outer: float = 0.08
     ring_height: float = 0.025
-    plane_threshold: float = 0.005
+    threshold: float = 0.005
     ransac_iterations: int = 256
-    seed: int = 0
     max_tilt_deg: float = 45.0
-    plane_base_tolerance: float = 0.015
-    min_plane_points: int = 30
+    base_tolerance: float = 0.015
+    min_points: int = 30
     min_inlier_fraction: float = 0.3
     min_opacity: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class FillConfig:
+    """The new disks on the exposed cells (``construct.background.plane``, ``kernels.fill``).
+
+    Attributes:
+        grid: disk grid spacing on the plane (paper: 5 mm).
+        margin: ours — the fill covers the exposed footprint grown by this (overlaps the kept surface).
+        cover_factor: ours — a grid cell is covered by the kept surface when a kept plane Gaussian lies
+            within this many times the kept Gaussians' median spacing.
+        slab: kept Gaussians within this of the plane are surface (coverage) and are rendered with the
+            disks in the refinement; the others are fixed front/back layers.
+        disk_sigma: in-plane σ of a new disk as a fraction of ``grid`` (the synthetic capture's disk shape).
+        disk_thickness: normal σ of a new disk as a fraction of its in-plane σ (likewise).
+        max_disk_sigma: the fit keeps a disk's in-plane σ within [¼, this] × ``grid`` (it bounds the
+            pixels a disk can reach, hence the kept Gaussians each step renders).
+        init_opacity: of a new disk.
+        colour_neighbours: disks no target sees take the mean colour of this many nearest kept plane
+            Gaussians ("neighbouring observations").
+        max_disks: per object; more is a failed completion (an implausibly large exposed region).
+    """
+
     grid: float = 0.005
     margin: float = 0.01
     cover_factor: float = 1.0
@@ -112,6 +130,60 @@ class BackgroundConfig:
     init_opacity: float = 0.9
     colour_neighbours: int = 8
     max_disks: int = 40_000
+
+    def __post_init__(self):
+        if not (self.grid > 0 and self.margin >= 0 and 0 < self.init_opacity < 1):
+            raise ValueError("background: need grid > 0, margin ≥ 0 and 0 < init_opacity < 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class TargetsConfig:
+    """Inpainting targets (``construct.background.targets``).
+
+    Attributes:
+        inpaint: "telea" (OpenCV's Telea, the default) or "ns" (Navier–Stokes).
+        inpaint_radius: OpenCV's inpainting neighbourhood, pixels.
+        region_weight: a pixel is in an edit's region where the removed Gaussians' composited weight
+            reaches this (their rendered alpha in the capture).
+        region_dilate_px: the region is grown by this many pixels.
+        loss_ring_px: the fit also covers this many pixels around the region, where the target is the
+            kept scene itself (the new disks must not change what was already right).
+        explained_alpha: inside the region, a pixel the kept Gaussians cover at least this opaquely, at or
+            in front of the support plane (``plane_depth_tolerance``), is kept as rendered, not inpainted.
+        plane_depth_tolerance: metres.
+        external: ours — a folder of externally edited targets replacing ours (format in
+            ``construct.background.targets``); None: OpenCV.
+        write: write the targets (and masks) under ``background/targets/`` for inspection or editing.
+    """
+
+    inpaint: str = "telea"
+    inpaint_radius: int = 5
+    region_weight: float = 0.02
+    region_dilate_px: int = 2
+    loss_ring_px: int = 4
+    explained_alpha: float = 0.95
+    plane_depth_tolerance: float = 0.01
+    external: str | None = None
+    write: bool = True
+
+    def __post_init__(self):
+        if self.inpaint not in ("telea", "ns"):
+            raise ValueError(f"background inpaint {self.inpaint!r} (expected 'telea' or 'ns')")
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineConfig:
+    """The refinement of the new disks only, the kept Gaussians fixed (``kernels.fill``).
+
+    Attributes:
+        iterations: Adam steps.
+        dssim_weight: λ of (1 − λ) L1 + λ D-SSIM (3DGS: 0.2).
+        lr_colour: learning rate of the SH DC.
+        lr_opacity: ... of the opacity logit.
+        lr_offset: ... of the in-plane offset (tanh-bounded by one grid cell).
+        lr_scale: ... of the in-plane log-scale.
+    """
+
     iterations: int = 40
     dssim_weight: float = 0.2
     lr_colour: float = 0.05
@@ -120,13 +192,28 @@ class BackgroundConfig:
     lr_scale: float = 0.02
 
     def __post_init__(self):
-        if self.inpaint not in ("telea", "ns"):
-            raise ValueError(f"background inpaint {self.inpaint!r} (expected 'telea' or 'ns')")
-        if not (self.obs_radius >= 0 and self.asset_radius >= 0 and self.mask_votes >= 1):
-            raise ValueError("background: need obs_radius ≥ 0, asset_radius ≥ 0 and mask_votes ≥ 1")
-        if not (self.grid > 0 and self.margin >= 0 and 0 < self.init_opacity < 1):
-            raise ValueError("background: need grid > 0, margin ≥ 0 and 0 < init_opacity < 1")
-        if not self.crop_sizes or not self.mask_crop_sizes or min(self.crop_sizes + self.mask_crop_sizes) < 16:
-            raise ValueError("background: crop sizes must be given and at least one tile (16 px)")
         if self.iterations < 0 or not (0 <= self.dssim_weight <= 1):
             raise ValueError("background: need iterations ≥ 0 and 0 ≤ dssim_weight ≤ 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class BackgroundConfig:
+    """Background branch: coupled source-Gaussian removal, inpainting targets, plane-disk fill.
+
+    Attributes:
+        removal: which Gaussians go with each object (R_obs, R_asset, R_mask).
+        crops: static crop sizes of the R_mask and target render passes.
+        plane: the support plane fitted around each object's footprint.
+        fill: the new disks on the exposed cells of that plane.
+        targets: the inpainting targets the disks are fitted to.
+        refine: the fit of the disks to the targets.
+        seed: seeds the RANSAC hypotheses and the asset's surface samples (deterministic runs).
+    """
+
+    removal: RemovalConfig = RemovalConfig()
+    crops: CropConfig = CropConfig()
+    plane: PlaneConfig = PlaneConfig()
+    fill: FillConfig = FillConfig()
+    targets: TargetsConfig = TargetsConfig()
+    refine: RefineConfig = RefineConfig()
+    seed: int = 0

@@ -1,12 +1,15 @@
 """Support plane and the fill grid of one removed object (host side; the fit is ``kernels.fill``).
 
+Names in ``code`` are fields of ``PlaneConfig`` (the plane) and ``FillConfig`` (the fill).
+
 1. Ring: kept Gaussian centres (opaque enough) whose horizontal distance from the object's
    footprint (Q_i and the placed asset, rasterized on a ``grid`` raster in the gravity frame)
    is within [``ring_inner``, ``ring_outer``] and whose height is within ``ring_height`` of
    the object's base.
 2. Plane: RANSAC over the ring (``ransac_iterations`` seeded hypotheses, inliers within
-   ``plane_threshold``, normal within ``max_tilt_deg`` of up, passing within
-   ``plane_base_tolerance`` of the object's base), then least-squares refits on the inliers. Too few ring points or inliers, or no plane near up: an *unsupported region*.
+   ``threshold``, normal within ``max_tilt_deg`` of up, passing within ``base_tolerance`` of
+   the object's base), then least-squares refits on the inliers. Too few ring points or
+   inliers, or no plane near up: an *unsupported region*.
 3. Cells of a ``grid`` lattice on the plane. A cell is *covered* when a kept Gaussian of the
    plane's slab lies within ``cover_factor`` × their median spacing. A cell is *supported* when
    it lies inside the closure of what is known to be plane there: covered cells, the object's
@@ -25,22 +28,14 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
+from kernels.sh import rgb_to_sh_dc
 from phirie_jax.construct.background.config import BackgroundConfig
-from phirie_jax.geometry import rotation_to_z
+from phirie_jax.geometry import logit, rotation_to_z
 from phirie_jax.types import GaussianSplatData
 
-SH_C0 = 0.28209479177387814
 REFITS = 3            # least-squares refits of the RANSAC plane on its inliers
 DEGENERATE = 1e-12    # |n|² of a hypothesis from collinear samples
 ASSET_SAMPLE_CELLS = 4  # asset surface samples per grid cell area (its shadow has no gaps)
-
-
-def _rgb_to_dc(rgb: np.ndarray) -> np.ndarray:
-    return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
-
-
-def opacity(data: GaussianSplatData) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-data.opacity_logits.astype(np.float64)))
 
 
 def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,50 +66,50 @@ def fit_plane(points: np.ndarray, up: np.ndarray, config: BackgroundConfig, anch
               ) -> tuple[Plane | None, str | None]:
     """Robust plane of ``points`` (P, 3): RANSAC then least-squares refits. (None, reason) if none.
 
-    anchor: the object's base point; a support plane passes within ``plane_base_tolerance`` of it
+    anchor: the object's base point; a support plane passes within ``PlaneConfig.base_tolerance`` of it
     (a table's underside, parallel and a few cm below, often has more points in the ring).
     """
     n_pts = len(points)
-    if n_pts < max(3, config.min_plane_points):
-        return None, f"{n_pts} surface points around the footprint (need {config.min_plane_points})"
+    if n_pts < max(3, config.plane.min_points):
+        return None, f"{n_pts} surface points around the footprint (need {config.plane.min_points})"
     rng = np.random.default_rng(config.seed)
-    samples = np.stack([rng.choice(n_pts, 3, replace=False) for _ in range(config.ransac_iterations)])
+    samples = np.stack([rng.choice(n_pts, 3, replace=False) for _ in range(config.plane.ransac_iterations)])
     a, b, c = points[samples[:, 0]], points[samples[:, 1]], points[samples[:, 2]]
     normals = np.cross(b - a, c - a)
     norm2 = np.sum(normals**2, axis=1)
     normals = normals / np.sqrt(np.maximum(norm2, DEGENERATE))[:, None]
     cos_tilt = np.abs(normals @ up)
-    ok = (norm2 > DEGENERATE) & (cos_tilt >= np.cos(np.deg2rad(config.max_tilt_deg)))
+    ok = (norm2 > DEGENERATE) & (cos_tilt >= np.cos(np.deg2rad(config.plane.max_tilt_deg)))
     if anchor is not None:
-        ok &= np.abs(np.sum((anchor - a) * normals, axis=1)) <= config.plane_base_tolerance
+        ok &= np.abs(np.sum((anchor - a) * normals, axis=1)) <= config.plane.base_tolerance
     dist = np.abs((points[None] - a[:, None]) @ normals[..., None])[..., 0]  # (H, P)
-    counts = np.where(ok, np.sum(dist <= config.plane_threshold, axis=1), -1)
+    counts = np.where(ok, np.sum(dist <= config.plane.threshold, axis=1), -1)
     best = int(np.argmax(counts))
     if counts[best] < 3:
-        where = "" if anchor is None else f" passing within {config.plane_base_tolerance} m of the object's base"
-        return None, f"no plane within {config.max_tilt_deg}° of up{where} among {n_pts} surface points"
-    inliers = dist[best] <= config.plane_threshold
+        where = "" if anchor is None else f" passing within {config.plane.base_tolerance} m of the object's base"
+        return None, f"no plane within {config.plane.max_tilt_deg}° of up{where} among {n_pts} surface points"
+    inliers = dist[best] <= config.plane.threshold
     centre, normal = a[best], normals[best]
     for _ in range(REFITS):
         centre = points[inliers].mean(0)
         _, _, vt = np.linalg.svd(points[inliers] - centre, full_matrices=False)
         normal = vt[-1]
-        new = np.abs((points - centre) @ normal) <= config.plane_threshold
+        new = np.abs((points - centre) @ normal) <= config.plane.threshold
         if new.sum() < 3:
             break
         inliers = new
     if normal @ up < 0:
         normal = -normal
-    if normal @ up < np.cos(np.deg2rad(config.max_tilt_deg)):
+    if normal @ up < np.cos(np.deg2rad(config.plane.max_tilt_deg)):
         return None, f"the best plane is tilted {np.degrees(np.arccos(normal @ up)):.0f}° from up"
-    if anchor is not None and abs((anchor - centre) @ normal) > config.plane_base_tolerance:
+    if anchor is not None and abs((anchor - centre) @ normal) > config.plane.base_tolerance:
         return None, "the refitted plane does not pass by the object's base"
     fraction = inliers.mean()
     rms = float(np.sqrt(np.mean(((points[inliers] - centre) @ normal) ** 2)))
     plane = Plane(centre, normal, int(inliers.sum()), n_pts, rms)
-    if fraction < config.min_inlier_fraction:
+    if fraction < config.plane.min_inlier_fraction:
         return None, (f"{fraction:.0%} of the surface points around the footprint are on one plane "
-                      f"(need {config.min_inlier_fraction:.0%})")
+                      f"(need {config.plane.min_inlier_fraction:.0%})")
     return plane, None
 
 
@@ -142,13 +137,16 @@ def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, gri
 
 def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray, up: np.ndarray,
                 base: float, config: BackgroundConfig) -> np.ndarray:
-    """Indices of kept Gaussians in the ring around the footprint (module docstring, 1)."""
+    """Indices of kept Gaussians in the ring around the footprint (module docstring, 1).
+
+    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), up (3,) unit, base: the object's base
+    height along up.."""
 
     rot = rotation_to_z(up)
     obj_g = obj_points @ rot.T
-    cell = config.grid
-    origin = obj_g[:, :2].min(0) - config.ring_outer - cell
-    shape = tuple(np.ceil((obj_g[:, :2].max(0) + config.ring_outer + cell - origin) / cell).astype(int) + 1)
+    cell = config.fill.grid
+    origin = obj_g[:, :2].min(0) - config.plane.ring_outer - cell
+    shape = tuple(np.ceil((obj_g[:, :2].max(0) + config.plane.ring_outer + cell - origin) / cell).astype(int) + 1)
     footprint = _raster(obj_g[:, :2], origin, cell, shape)
     dist = ndimage.distance_transform_edt(~footprint) * cell
     kept_g = kept_means @ rot.T
@@ -156,9 +154,9 @@ def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np
     inside = (ij[:, 0] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[1])
     d = np.full(len(kept_means), np.inf)
     d[inside] = dist[ij[inside, 0], ij[inside, 1]]
-    near_base = np.abs(kept_g[:, 2] - base) <= config.ring_height
-    return np.flatnonzero((d >= config.ring_inner) & (d <= config.ring_outer) & near_base
-                          & (kept_opacity >= config.min_opacity))
+    near_base = np.abs(kept_g[:, 2] - base) <= config.plane.ring_height
+    return np.flatnonzero((d >= config.plane.ring_inner) & (d <= config.plane.ring_outer) & near_base
+                          & (kept_opacity >= config.plane.min_opacity))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,45 +185,48 @@ class FillRegion:
 
 def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray,
                 removed_means: np.ndarray, config: BackgroundConfig) -> FillRegion:
-    """The exposed cells of the plane under one object, grown by the margin (module docstring, 3)."""
+    """The exposed cells of the plane under one object, grown by the margin (module docstring, 3).
+
+    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), removed_means (R, 3) the object's R_i.
+    """
     from scipy.spatial import cKDTree
 
     u, v = tangent_basis(plane.normal)
-    cell = config.grid
+    cell = config.fill.grid
 
     def plane_xy(x):
         d = np.asarray(x, np.float64) - plane.point
         return np.stack([d @ u, d @ v], axis=1)
 
     h_obj = plane.height(obj_points)
-    shadow_pts = np.concatenate([plane_xy(obj_points[h_obj > -config.slab]),
-                                 plane_xy(removed_means[plane.height(removed_means) > -config.slab])])
-    reach = config.obs_radius + config.margin + 2 * cell
+    shadow_pts = np.concatenate([plane_xy(obj_points[h_obj > -config.fill.slab]),
+                                 plane_xy(removed_means[plane.height(removed_means) > -config.fill.slab])])
+    reach = config.removal.obs_radius + config.fill.margin + 2 * cell
     origin = shadow_pts.min(0) - reach
     shape = tuple(np.ceil((shadow_pts.max(0) + reach - origin) / cell).astype(int) + 1)
     ia, ib = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
     centres_xy = origin + (np.stack([ia, ib], -1) + 0.5) * cell  # (H, W, 2)
 
     h_kept = plane.height(kept_means)
-    on_plane = (np.abs(h_kept) <= config.slab) & (kept_opacity >= config.min_opacity)
+    on_plane = (np.abs(h_kept) <= config.fill.slab) & (kept_opacity >= config.plane.min_opacity)
     kept_xy = plane_xy(kept_means[on_plane])
     lo, hi = origin - reach, origin + np.array(shape) * cell + reach
     local = kept_xy[np.all((kept_xy >= lo) & (kept_xy <= hi), axis=1)]
     if len(local) >= 2:
         d_nn, _ = cKDTree(local).query(local, k=2)
         spacing = float(np.median(d_nn[:, 1]))
-        d, _ = cKDTree(local).query(centres_xy.reshape(-1, 2), distance_upper_bound=max(cell, config.cover_factor * spacing))
+        d, _ = cKDTree(local).query(centres_xy.reshape(-1, 2), distance_upper_bound=max(cell, config.fill.cover_factor * spacing))
         covered = np.isfinite(d).reshape(shape)
     else:
         spacing, covered = float("nan"), np.zeros(shape, bool)
 
-    removed_slab = removed_means[np.abs(plane.height(removed_means)) <= config.slab]
-    base = obj_points[(h_obj > -config.slab) & (h_obj <= config.slab)]
+    removed_slab = removed_means[np.abs(plane.height(removed_means)) <= config.fill.slab]
+    base = obj_points[(h_obj > -config.fill.slab) & (h_obj <= config.fill.slab)]
     known = covered | _raster(plane_xy(removed_slab), origin, cell, shape) | _raster(plane_xy(base), origin, cell, shape)
     supported = ndimage.binary_fill_holes(ndimage.binary_closing(known, iterations=2, border_value=0))
     shadow = ndimage.binary_fill_holes(ndimage.binary_closing(_raster(shadow_pts, origin, cell, shape), iterations=2))
     exposed = supported & ~covered & shadow
-    grow = round(config.margin / cell)
+    grow = round(config.fill.margin / cell)
     fill = ndimage.binary_dilation(exposed, iterations=grow) & supported if grow > 0 else exposed
     xy = centres_xy[fill]
     centres = plane.point + xy[:, :1] * u + xy[:, 1:] * v
@@ -244,12 +245,11 @@ def neighbour_colours(centres: np.ndarray, kept_means: np.ndarray, kept_rgb: np.
 
 def disks(region: FillRegion, rgb: np.ndarray, config: BackgroundConfig, sh_coeffs: int) -> GaussianSplatData:
     """The initial disks of a fill region, coloured ``rgb`` (K, 3), SH padded to ``sh_coeffs``."""
-    sigma = config.disk_sigma * config.grid
+    sigma = config.fill.disk_sigma * config.fill.grid
     n = region.num
     sh = np.zeros((n, sh_coeffs, 3), np.float32)
-    sh[:, 0] = _rgb_to_dc(rgb)
-    logit = np.log(config.init_opacity / (1 - config.init_opacity))
+    sh[:, 0] = rgb_to_sh_dc(np.asarray(rgb, np.float64))
     return GaussianSplatData(
         means=region.centres.astype(np.float32), quats=region.quats().astype(np.float32),
-        log_scales=np.tile(np.log([sigma, sigma, config.disk_thickness * sigma]), (n, 1)).astype(np.float32),
-        opacity_logits=np.full(n, logit, np.float32), sh=sh)
+        log_scales=np.tile(np.log([sigma, sigma, config.fill.disk_thickness * sigma]), (n, 1)).astype(np.float32),
+        opacity_logits=np.full(n, logit(config.fill.init_opacity), np.float32), sh=sh)

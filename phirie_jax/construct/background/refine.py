@@ -22,24 +22,15 @@ from kernels import fill as fill_kernel
 from kernels.raster import RasterConfig
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.targets import Frame
+from phirie_jax.geometry import sigmoid
 from phirie_jax.render import MAX_CAPACITY, gaussian_bucket, next_power_of_two, pad_gaussians
 from phirie_jax.types import GaussianSplatData
 
-SH_C0 = 0.28209479177387814
 MIN_CAPACITY = 1 << 14
 EMPTY_DEPTH = -1e6      # padding frames: a camera translation that puts everything behind it
 MIN_OPACITY = 1.0 / 255.0  # disks fitted below this are dropped (they never show)
 
-TRACE_COUNTS = {"fill_step": 0}
-
-
-def _traced_step(params, opt_state, geom, frames, lrs, *, width, config, dssim_weight):
-    TRACE_COUNTS["fill_step"] += 1  # runs only while jax traces
-    return fill_kernel.fill_step(params, opt_state, geom, frames, lrs, width=width, config=config,
-                                 dssim_weight=dssim_weight)
-
-
-_step = jax.jit(_traced_step, static_argnames=("width", "config", "dssim_weight"))
+_step = jax.jit(fill_kernel.fill_step, static_argnames=("width", "config", "dssim_weight"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,33 +131,25 @@ def tile_intersections(data: GaussianSplatData, crop, tile: int) -> int:
     return int(np.sum(np.where(z > 0, span[:, 0] * span[:, 1], 0)))
 
 
-def refine(disk_set: DiskSet, frames: list[Frame], config: BackgroundConfig, sh_coeffs: int
-           ) -> tuple[GaussianSplatData, dict]:
-    """Fit the disks to the frames' targets. Returns the refined disks (SH padded to ``sh_coeffs``,
-    those fitted transparent dropped) and a record (losses, steps, buckets, times).
+@dataclasses.dataclass
+class _Fit:
+    """What the Adam loop hands back: the final parameters and the run's losses and counts."""
 
-    One compiled program: the step returns the loss of the parameters it was given, so the
-    initial loss is the first step's and the final loss one more call's (whose update is dropped).
-    """
-    n = disk_set.disks.num
-    size = gaussian_bucket(n)
-    geom = geometry(disk_set, size, config.grid, config.max_disk_sigma)
-    params = initial_params(disk_set, size)
-    batch = next_power_of_two(len(frames))
-    disk_lists = [frame_disks(disk_set, f, config.max_disk_sigma * config.grid, config.grid) for f in frames]
-    stacked = stack_frames(frames, batch, disk_lists)
-    width = frames[0].crop.size
-    lrs = fill_kernel.FillParams(dc=jnp.float32(config.lr_colour), opacity_logits=jnp.float32(config.lr_opacity),
-                                 raw_offsets=jnp.float32(config.lr_offset), log_scales=jnp.float32(config.lr_scale))
-    grown = dataclasses.replace(disk_set.disks, log_scales=np.full_like(
-        disk_set.disks.log_scales, np.log(config.max_disk_sigma * config.grid)))
-    tile = RasterConfig().tile_size
-    estimate = max(tile_intersections(grown.subset(d), f.crop, tile) + tile_intersections(f.slab, f.crop, tile)
-                   for f, d in zip(frames, disk_lists))
-    raster = RasterConfig(capacity=max(MIN_CAPACITY, next_power_of_two(estimate)))
-    statics = {"width": width, "dssim_weight": float(config.dssim_weight)}
+    params: fill_kernel.FillParams
+    raster: RasterConfig
+    losses: list[float]               # (steps + 1,) the loss before each step and after the last
+    frame_losses: list[np.ndarray]    # (steps + 1,) of (F,) per-frame losses
+    steps: int
+    retries: int
+    first_s: float
+    loop_s: float
+
+
+def _fit(params, geom, stacked, lrs, raster: RasterConfig, statics: dict, iterations: int, num_frames: int) -> _Fit:
+    """The Adam loop. One compiled program: the step returns the loss of the parameters it was
+    given, so the initial loss is the first step's and the final loss one more call's (whose update
+    is dropped). A step that overflows the intersection capacity grows it and is repeated."""
     opt_state = fill_kernel.init_state(params)
-    init_params = params
     losses, frame_losses = [], []
     steps = retries = 0
     first_s = None
@@ -181,27 +164,63 @@ def refine(disk_set: DiskSet, frames: list[Frame], config: BackgroundConfig, sh_
         if first_s is None:
             first_s = time.perf_counter() - t0
         losses.append(float(loss))
-        frame_losses.append(np.asarray(per_frame)[: len(frames)])
-        if steps == config.iterations:
+        frame_losses.append(np.asarray(per_frame)[:num_frames])
+        if steps == iterations:
             break
         params, opt_state = new_params, new_state
         steps += 1
-    loop_s = time.perf_counter() - t0 - first_s
-    reverted = None
+    return _Fit(params, raster, losses, frame_losses, steps, retries, first_s, time.perf_counter() - t0 - first_s)
+
+
+def _capacity(disk_set: DiskSet, frames: list[Frame], disk_lists: list[np.ndarray], config: BackgroundConfig
+              ) -> RasterConfig:
+    """The raster config of the fit: its intersection capacity twice what the disks at their largest
+    σ and the slab need in the busiest frame (a power of two, at least ``MIN_CAPACITY``)."""
+    grown = dataclasses.replace(disk_set.disks, log_scales=np.full_like(
+        disk_set.disks.log_scales, np.log(config.fill.max_disk_sigma * config.fill.grid)))
+    tile = RasterConfig().tile_size
+    estimate = max(tile_intersections(grown.subset(d), f.crop, tile) + tile_intersections(f.slab, f.crop, tile)
+                   for f, d in zip(frames, disk_lists))
+    return RasterConfig(capacity=max(MIN_CAPACITY, next_power_of_two(estimate)))
+
+
+def refine(disk_set: DiskSet, frames: list[Frame], config: BackgroundConfig, sh_coeffs: int
+           ) -> tuple[GaussianSplatData, dict]:
+    """Fit the disks to the frames' targets. Returns the refined disks (SH padded to ``sh_coeffs``,
+    those fitted transparent dropped) and a record (losses, steps, buckets, times).
+
+    A fit that does not lower the loss (or diverges) is reverted to the initial disks.
+    """
+    fill, opt = config.fill, config.refine
+    n = disk_set.disks.num
+    size = gaussian_bucket(n)
+    geom = geometry(disk_set, size, fill.grid, fill.max_disk_sigma)
+    init_params = initial_params(disk_set, size)
+    batch = next_power_of_two(len(frames))
+    disk_lists = [frame_disks(disk_set, f, fill.max_disk_sigma * fill.grid, fill.grid) for f in frames]
+    stacked = stack_frames(frames, batch, disk_lists)
+    width = frames[0].crop.size
+    lrs = fill_kernel.FillParams(dc=jnp.float32(opt.lr_colour), opacity_logits=jnp.float32(opt.lr_opacity),
+                                 raw_offsets=jnp.float32(opt.lr_offset), log_scales=jnp.float32(opt.lr_scale))
+    statics = {"width": width, "dssim_weight": float(opt.dssim_weight)}
+    fit = _fit(init_params, geom, stacked, lrs, _capacity(disk_set, frames, disk_lists, config), statics,
+               opt.iterations, len(frames))
+    losses, params, reverted = fit.losses, fit.params, None
     if not np.isfinite(losses[-1]) or losses[-1] > losses[0]:
         reverted = "the fit did not lower the loss" if np.isfinite(losses[-1]) else "the fit diverged"
         params = init_params
     data = _to_data(params, geom, n, sh_coeffs)
-    alive = 1.0 / (1.0 + np.exp(-data.opacity_logits.astype(np.float64))) >= MIN_OPACITY
+    alive = sigmoid(data.opacity_logits) >= MIN_OPACITY
     record = {
         "disks": n, "disks_kept": int(alive.sum()), "frames": len(frames), "buckets": {
             "disks": size, "frames": batch, "crop": width, "slab": int(stacked.slab.means.shape[1]),
             "frame_disks": int(stacked.disks.shape[1]),
-            "capacity": raster.capacity},
-        "steps": steps, "capacity_retries": retries, "loss_initial": losses[0], "loss_final": losses[-1],
-        "frame_loss_initial": frame_losses[0].round(6).tolist(), "frame_loss_final": frame_losses[-1].round(6).tolist(),
+            "capacity": fit.raster.capacity},
+        "steps": fit.steps, "capacity_retries": fit.retries, "loss_initial": losses[0], "loss_final": losses[-1],
+        "frame_loss_initial": fit.frame_losses[0].round(6).tolist(),
+        "frame_loss_final": fit.frame_losses[-1].round(6).tolist(),
         "loss_curve": np.asarray(losses).round(6).tolist(), "reverted": reverted,
-        "first_call_s": round(first_s, 3), "loop_s": round(loop_s, 3)}
+        "first_call_s": round(fit.first_s, 3), "loop_s": round(fit.loop_s, 3)}
     return data.subset(alive), record
 
 

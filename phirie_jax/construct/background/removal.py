@@ -1,6 +1,6 @@
 """Source-Gaussian removal coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask.
 
-For each object the object stage made (status in ``BackgroundConfig.remove_statuses``):
+For each object the object stage made (status in ``RemovalConfig.statuses``):
 
 - R_obs: Gaussians whose centre is within ``obs_radius`` (paper: 3 cm) of the observed
   surface samples Q_i (``observe/instance_<id>.npz``);
@@ -28,6 +28,8 @@ import numpy as np
 
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.views import Crop, CropRenderer, make_crop, pass_bucket
+from phirie_jax.io.mesh import read_mesh
+from phirie_jax.layout import resolve
 from phirie_jax.types import Camera, GaussianSplatData
 
 DEPTH_ALPHA = 0.5  # rendered alpha below this at a pixel: nothing of the object there to occlude
@@ -52,26 +54,18 @@ class ObjectInput:
         return np.stack([pts.min(0) - margin, pts.max(0) + margin])
 
 
-def _resolve(out_dir: Path, path: str) -> Path:
-    p = Path(path)
-    return p if p.is_absolute() else out_dir / p
-
-
 def load_object(entry: dict, instance: dict, out_dir: Path) -> ObjectInput:
     """An object's inputs from the manifest's ``objects`` and ``instances`` entries."""
-    import trimesh
-
-    data = np.load(_resolve(out_dir, instance["points"]))
+    data = np.load(resolve(out_dir, instance["points"]))
     mesh = None
     if entry.get("mesh") and entry.get("pose") is not None:
-        loaded = trimesh.load(_resolve(out_dir, entry["mesh"]), force="mesh", process=False)
+        vertices, faces = read_mesh(resolve(out_dir, entry["mesh"]))
         pose = np.asarray(entry["pose"], np.float64)
-        vertices = np.asarray(loaded.vertices, np.float64) @ pose[:3, :3].T + pose[:3, 3]
-        mesh = (vertices, np.asarray(loaded.faces, np.int64))
+        mesh = (vertices @ pose[:3, :3].T + pose[:3, 3], faces)
     return ObjectInput(
         id=int(entry["id"]), q=np.asarray(data["points"], np.float64), mesh=mesh,
         views=np.asarray(data["views"], np.int64), labels=np.asarray(data["labels"], np.int64),
-        mask_paths=[_resolve(out_dir, str(p)) for p in data["mask_paths"]],
+        mask_paths=[resolve(out_dir, str(p)) for p in data["mask_paths"]],
         bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64))
 
 
@@ -126,69 +120,81 @@ class MaskJob:
     crop: Crop
 
 
+def _mask_jobs(objects: list[ObjectInput], cameras: tuple[Camera, ...], config: BackgroundConfig) -> list[MaskJob]:
+    """The (object, view) pairs of the R_mask pass: each object's ``mask_views`` largest masks, all
+    cropped at one size (one compiled program): the largest any view needs."""
+    picked = []
+    for k, o in enumerate(objects):
+        order = np.argsort(-o.pixels, kind="stable")[: config.removal.mask_views]
+        picked += [(k, int(j)) for j in order if int(o.views[j]) < len(cameras) and o.pixels[j] > 0]
+    sizes, margin = config.crops.mask_sizes, config.crops.margin_px
+    size = max([make_crop(cameras[objects[k].views[j]], 0, objects[k].bboxes[j], sizes, margin).size
+                for k, j in picked], default=min(sizes))
+    return [MaskJob(k, int(objects[k].views[j]), int(objects[k].labels[j]), objects[k].mask_paths[j],
+                    make_crop(cameras[objects[k].views[j]], int(objects[k].views[j]), objects[k].bboxes[j], (size,),
+                              margin)) for k, j in picked]
+
+
+def _job_votes(data: GaussianSplatData, idx: np.ndarray, job: MaskJob, cameras: tuple[Camera, ...],
+               config: BackgroundConfig, crops: CropRenderer, pad: int) -> tuple[np.ndarray, np.ndarray] | str:
+    """One view's votes for the candidates ``idx`` (K,) of one object: (K,) bool in the mask and
+    visible, (K,) bool in the mask; or the problem (a message) that keeps this view from voting."""
+    try:
+        mask = read_mask(job.mask_path)
+    except OSError as err:
+        return str(err)
+    cam = cameras[job.view]
+    if mask.shape != (cam.height, cam.width):
+        return f"{job.mask_path}: {mask.shape[1]}×{mask.shape[0]}, camera is {cam.width}×{cam.height}"
+    try:
+        out = crops.render(data.subset(idx), job.crop, pad)
+    except RuntimeError as err:  # the renderer's buffers: this view does not vote
+        return f"view {job.view}: {err}"
+    depth = np.asarray(out.depth_normalized)
+    alpha = np.asarray(out.alpha)
+    uv, z = job.crop.camera.project(data.means[idx].astype(np.float64))
+    col = np.floor(uv[:, 0]).astype(np.int64)
+    row = np.floor(uv[:, 1]).astype(np.int64)
+    size = job.crop.size
+    ok = (z > 0) & (col >= 0) & (col < size) & (row >= 0) & (row < size)
+    ok[ok] &= job.crop.inside[row[ok], col[ok]]
+    full = np.floor(job.crop.to_full(uv[ok])).astype(np.int64)
+    fc = np.clip(full[:, 0], 0, cam.width - 1)
+    fr = np.clip(full[:, 1], 0, cam.height - 1)
+    in_mask = np.zeros(len(idx), bool)
+    in_mask[ok] = mask[fr, fc] == job.label
+    visible = np.zeros(len(idx), bool)
+    r, c = row[ok], col[ok]
+    visible[ok] = (alpha[r, c] < DEPTH_ALPHA) | (z[ok] <= depth[r, c] + config.removal.occlusion_tolerance)
+    return in_mask & visible, in_mask
+
+
 def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
                config: BackgroundConfig, crops: CropRenderer) -> tuple[list[np.ndarray], list[dict]]:
     """R_mask of every object (indices into ``data``) and a record per object."""
     means = data.means.astype(np.float64)
-    candidates = [_in_box(means, o.bounds(config.bounds_margin)) for o in objects]
-    picked = []
-    for k, o in enumerate(objects):
-        order = np.argsort(-o.pixels, kind="stable")[: config.mask_views]
-        picked += [(k, int(j)) for j in order if int(o.views[j]) < len(cameras) and o.pixels[j] > 0]
-    # one crop size for the whole pass (one compiled program): the largest any view needs
-    size = max([make_crop(cameras[objects[k].views[j]], 0, objects[k].bboxes[j], config.mask_crop_sizes,
-                          config.crop_margin_px).size for k, j in picked], default=min(config.mask_crop_sizes))
-    jobs = [MaskJob(k, int(objects[k].views[j]), int(objects[k].labels[j]), objects[k].mask_paths[j],
-                    make_crop(cameras[objects[k].views[j]], int(objects[k].views[j]), objects[k].bboxes[j], (size,),
-                              config.crop_margin_px)) for k, j in picked]
+    candidates = [_in_box(means, o.bounds(config.removal.bounds_margin)) for o in objects]
+    jobs = _mask_jobs(objects, cameras, config)
     pad = pass_bucket([len(c) for c in candidates])
     votes = [np.zeros(len(c), np.int64) for c in candidates]
     seen = [np.zeros(len(c), np.int64) for c in candidates]
     used: list[list[int]] = [[] for _ in objects]
     problems: list[list[str]] = [[] for _ in objects]
     for job in jobs:
-        idx = candidates[job.obj]
-        if len(idx) == 0:
+        if len(candidates[job.obj]) == 0:
             continue
-        try:
-            mask = read_mask(job.mask_path)
-        except OSError as err:
-            problems[job.obj].append(str(err))
+        result = _job_votes(data, candidates[job.obj], job, cameras, config, crops, pad)
+        if isinstance(result, str):
+            problems[job.obj].append(result)
             continue
-        cam = cameras[job.view]
-        if mask.shape != (cam.height, cam.width):
-            problems[job.obj].append(f"{job.mask_path}: {mask.shape[1]}×{mask.shape[0]}, camera is "
-                                     f"{cam.width}×{cam.height}")
-            continue
-        try:
-            out = crops.render(data.subset(idx), job.crop, pad)
-        except RuntimeError as err:  # the renderer's buffers: this view does not vote
-            problems[job.obj].append(f"view {job.view}: {err}")
-            continue
-        depth = np.asarray(out.depth_normalized)
-        alpha = np.asarray(out.alpha)
-        uv, z = job.crop.camera.project(means[idx])
-        col = np.floor(uv[:, 0]).astype(np.int64)
-        row = np.floor(uv[:, 1]).astype(np.int64)
-        size = job.crop.size
-        ok = (z > 0) & (col >= 0) & (col < size) & (row >= 0) & (row < size)
-        ok[ok] &= job.crop.inside[row[ok], col[ok]]
-        full = np.floor(job.crop.to_full(uv[ok])).astype(np.int64)
-        fc = np.clip(full[:, 0], 0, cam.width - 1)
-        fr = np.clip(full[:, 1], 0, cam.height - 1)
-        in_mask = np.zeros(len(idx), bool)
-        in_mask[ok] = mask[fr, fc] == job.label
-        visible = np.zeros(len(idx), bool)
-        r, c = row[ok], col[ok]
-        visible[ok] = (alpha[r, c] < DEPTH_ALPHA) | (z[ok] <= depth[r, c] + config.occlusion_tolerance)
-        votes[job.obj] += in_mask & visible
-        seen[job.obj] += in_mask
+        votes[job.obj] += result[0]
+        seen[job.obj] += result[1]
         used[job.obj].append(job.view)
     sets, records = [], []
     for k, o in enumerate(objects):
-        chosen = votes[k] >= config.mask_votes
+        chosen = votes[k] >= config.removal.mask_votes
         sets.append(candidates[k][chosen])
-        occluded = (seen[k] >= config.mask_votes) & ~chosen
+        occluded = (seen[k] >= config.removal.mask_votes) & ~chosen
         records.append({"views": used[k], "candidates": len(candidates[k]),
                         "occluded_rejected": int(occluded.sum()), "problems": problems[k]})
     return sets, records
@@ -202,8 +208,8 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
     masks, mask_records = mask_votes(data, objects, cameras, config, crops)
     sets, records = [], []
     for o, r_mask, mask_record in zip(objects, masks, mask_records):
-        r_obs = near_points(means, o.q, config.obs_radius)
-        r_asset = (near_surface(means, o.mesh[0], o.mesh[1], config.asset_radius)
+        r_obs = near_points(means, o.q, config.removal.obs_radius)
+        r_asset = (near_surface(means, o.mesh[0], o.mesh[1], config.removal.asset_radius)
                    if o.mesh is not None else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         sets.append(union)

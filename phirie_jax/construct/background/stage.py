@@ -4,14 +4,14 @@ Reads the capture G0 (the scene folder) and what the earlier stages wrote in ``o
 (``manifest.json`` ``instances`` and ``objects``, ``observe/instance_<id>.npz``, the assets'
 ``objects/<id>/mesh.obj``), and for the objects being made movable:
 
-1. removal, coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask (``construct.removal``);
-2. per object a robust support plane and the exposed cells of it (``construct.fill``) — no plane
+1. removal, coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask (``removal``);
+2. per object a robust support plane and the exposed cells of it (``plane``) — no plane
    is an *unsupported region*, recorded, and that object's hole stays;
 3. inpainting targets: one primary view per object, all edits of a frame in one target
-   (``construct.inpaint``; OpenCV Telea by default, Navier–Stokes, or an external editor's folder);
+   (``targets``; OpenCV Telea by default, Navier–Stokes, or an external editor's folder);
 4. new disks on a ``grid`` lattice over the exposed cells plus a margin, coloured from the targets
    where a target sees them and from the neighbouring kept surface elsewhere, then refined — only
-   they, the kept Gaussians fixed — against the targets (``construct.refine``, ``kernels.fill``).
+   they, the kept Gaussians fixed — against the targets (``refine``, ``kernels.fill``).
 
 Writes ``background.ply`` (INRIA format) = (G0 \\ ∪R_i) ∪ G_fill, ``background/targets/`` (the
 targets, editor format), and the manifest ``background`` section: ``path``, ``removed``,
@@ -26,32 +26,158 @@ object is recorded and the rest go on.
 from __future__ import annotations
 
 import dataclasses
-import time
 import traceback
 from pathlib import Path
 
 import numpy as np
 
+from kernels.sh import SH_C0, rgb_to_sh_dc
+from phirie_jax import layout
 from phirie_jax.construct.background import plane as fill_mod
 from phirie_jax.construct.background import targets as inpaint
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.refine import DiskSet, refine
 from phirie_jax.construct.background.removal import ObjectInput, load_object, removal_sets
 from phirie_jax.construct.background.views import CropRenderer, cull, make_crop, pass_bucket
+from phirie_jax.geometry import sigmoid
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
 from phirie_jax.types import Camera, GaussianSplatData, SceneInput
 
-OUTPUT = "background.ply"
-TARGETS = "background/targets"
-SH_C0 = 0.28209479177387814
 VISIBLE_TRANS = 0.5  # a target sees a disk where the front layer lets this much through
 BASE_PERCENTILE = 2  # without a recorded support, an object's base is this percentile of Q_i's height
 
 
+# --- what the earlier stages wrote (the manifest's sections, read in one place each) -------------
+
+def _instances(manifest: Manifest) -> dict[int, dict]:
+    """The observe stage's ``instances`` by id."""
+    return {i["id"]: i for i in manifest.get("instances") or []}
+
+
+def _gravity_up(manifest: Manifest) -> list[float] | None:
+    """The physics stage's ``construct.gravity.up``, or None."""
+    return ((manifest.get("construct") or {}).get("gravity") or {}).get("up")
+
+
+def _support_height(manifest: Manifest, object_id: int) -> float | None:
+    """The physics stage's support height of an object (``construct.supports``), or None."""
+    for s in (manifest.get("construct") or {}).get("supports") or []:
+        if s.get("id") == object_id and s.get("height") is not None:
+            return float(s["height"])
+    return None
+
+
+# --- the run's state --------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What every step reads, and the records the steps add to."""
+
+    out_dir: Path
+    data: GaussianSplatData          # (N,) the capture G0
+    cameras: tuple[Camera, ...]
+    up: np.ndarray                   # (3,) unit
+    crops: CropRenderer
+    inputs: list[ObjectInput]        # the objects being removed
+    records: dict[int, dict]         # per object id: the manifest record
+    unsupported: list[dict] = dataclasses.field(default_factory=list)
+    failed: list[dict] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Kept:
+    """The Gaussians that stay (G0 \\ ∪R_i) as the plane and fill steps read them."""
+
+    means: np.ndarray    # (K, 3) float64
+    opacity: np.ndarray  # (K,)
+    rgb: np.ndarray      # (K, 3) SH DC colour in [0, 1]
+
+    @classmethod
+    def of(cls, data: GaussianSplatData) -> _Kept:
+        return cls(data.means.astype(np.float64), sigmoid(data.opacity_logits),
+                   np.clip(data.sh[:, 0].astype(np.float64) * SH_C0 + 0.5, 0, 1))
+
+
+@dataclasses.dataclass(frozen=True)
+class _ObjectFill:
+    """One object's fill region and its initial disks."""
+
+    id: int
+    region: fill_mod.FillRegion
+    disks: GaussianSplatData  # (K,) SH DC only
+
+
+def _fail(record: dict, status: str, reason: str, err: BaseException | None = None) -> None:
+    record.update(status=status, reason=reason)
+    if err is not None:
+        record["traceback"] = traceback.format_exc(limit=4)
+
+
+# --- the stage ----------------------------------------------------------------------------------
+
+def run_background(scene_dir: str | Path, out_dir: str | Path, config: BackgroundConfig | None = None,
+                   scene: SceneInput | None = None) -> dict:
+    """The background stage (module docstring). Returns the manifest as a dict."""
+    out_dir = Path(out_dir)
+    config = config or BackgroundConfig()
+    manifest = Manifest.load_or_create(out_dir)
+    objects = manifest.require("objects", "the object-construction stage")
+    with manifest.timed("background"):
+        with manifest.timed("background.load"):
+            run = _load_inputs(scene_dir, out_dir, manifest, objects, config, scene)
+        with manifest.timed("background.removal"):
+            sets, removed = _removal(run, config)
+        with manifest.timed("background.plane"):
+            fills = _plane_fills(run, sets, removed, manifest, config)
+        fill_data, frames_record, refine_record = None, [], None
+        if fills:
+            with manifest.timed("background.targets"):
+                disk_set = _disk_set(fills)
+                frames, frames_record = _frames(run, removed, disk_set, fills, config)
+            if frames:
+                with manifest.timed("background.refine"):
+                    disk_set = _colour_from_targets(run, disk_set, frames, fills)
+                    if config.refine.iterations > 0:
+                        fill_data, refine_record = refine(disk_set, frames, config, run.data.sh.shape[1])
+            fill_data = disk_set.disks if fill_data is None else fill_data
+            _mark_filled(run, fills)
+        with manifest.timed("background.write"):
+            background, kept_num = _write(run, removed, fill_data)
+        manifest.set("background", _section(run, config, removed, background, kept_num, frames_record,
+                                            refine_record))
+    manifest.write()
+    return manifest.data
+
+
+def _load_inputs(scene_dir: str | Path, out_dir: Path, manifest: Manifest, objects: list[dict],
+                 config: BackgroundConfig, scene: SceneInput | None) -> _Run:
+    """The capture, its cameras, up, and the inputs of the objects being removed (the others are
+    recorded as skipped, those whose inputs cannot be read as failed)."""
+    scene = scene or load_scene(scene_dir, check_images=False)
+    data = scene.require_gaussians()
+    cameras = scene.require_cameras()
+    instances = _instances(manifest)
+    records: dict[int, dict] = {}
+    inputs: list[ObjectInput] = []
+    for entry in objects:
+        rec = records.setdefault(entry["id"], {"id": entry["id"], "status": None, "reason": None})
+        if entry.get("status") not in config.removal.statuses:
+            _fail(rec, "skipped", f"object status {entry.get('status')!r}: its Gaussians stay in the background")
+            continue
+        try:
+            if entry["id"] not in instances:
+                raise KeyError(f"no instance {entry['id']} in the manifest")
+            inputs.append(load_object(entry, instances[entry["id"]], out_dir))
+        except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
+            _fail(rec, "failed", f"inputs unreadable, not removed: {type(err).__name__}: {err}", err)
+    return _Run(out_dir, data, cameras, _up(manifest, scene), CropRenderer(), inputs, records)
+
+
 def _up(manifest: Manifest, scene: SceneInput) -> np.ndarray:
-    up = ((manifest.get("construct") or {}).get("gravity") or {}).get("up")
+    """(3,) unit up: the physics stage's gravity, else the cameras' up, else +z."""
+    up = _gravity_up(manifest)
     if up is not None:
         return np.asarray(up, np.float64) / np.linalg.norm(up)
     if scene.cameras:
@@ -61,32 +187,82 @@ def _up(manifest: Manifest, scene: SceneInput) -> np.ndarray:
     return np.array([0.0, 0.0, 1.0])
 
 
-def _base_height(manifest: Manifest, obj: ObjectInput, up: np.ndarray) -> float:
-    for s in (manifest.get("construct") or {}).get("supports") or []:
-        if s.get("id") == obj.id and s.get("height") is not None:
-            return float(s["height"])
-    return float(np.percentile(obj.q @ up, BASE_PERCENTILE))
+def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.ndarray]:
+    """R_i of every object being removed (indices into G0) and (N,) bool: in any R_i."""
+    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops)
+                             if run.inputs else ([], []))
+    removed = np.zeros(run.data.num, bool)
+    for o, r_i, rec in zip(run.inputs, sets, removal_records):
+        removed[r_i] = True
+        run.records[o.id]["removed"] = rec
+    return sets, removed
 
 
-@dataclasses.dataclass
-class _Clock:
-    seconds: dict = dataclasses.field(default_factory=dict)
+def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifest: Manifest,
+                 config: BackgroundConfig) -> list[_ObjectFill]:
+    """Per object its support plane, the exposed cells and their initial disks; an object without
+    a plane, with nothing exposed or with too many disks is recorded and has no fill."""
+    kept = _Kept.of(run.data.subset(~removed))
+    fills = []
+    for o, r_i in zip(run.inputs, sets):
+        rec = run.records[o.id]
+        try:
+            fill = _object_fill(run, o, r_i, kept, _support_height(manifest, o.id), config)
+        except Exception as err:  # noqa: BLE001
+            reason = f"{type(err).__name__}: {err}"
+            _fail(rec, "failed", reason, err)
+            run.failed.append({"id": o.id, "reason": reason})
+            continue
+        if fill is not None:
+            fills.append(fill)
+    return fills
 
-    def add(self, step: str, since: float) -> float:
-        now = time.perf_counter()
-        self.seconds[f"background.{step}"] = self.seconds.get(f"background.{step}", 0.0) + now - since
-        return now
+
+def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: float | None,
+                 config: BackgroundConfig) -> _ObjectFill | None:
+    """One object's plane, fill region and disks (``plane``); None, recorded, when it has none.
+    r_i: (R,) its removed Gaussians; support: its recorded base height, if any."""
+    rec = run.records[o.id]
+    obj_pts = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
+    base = support if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
+    ring = fill_mod.ring_points(kept.means, kept.opacity, obj_pts, run.up, base, config)
+    centre = o.q.mean(0)
+    anchor = centre + (base - centre @ run.up) * run.up
+    plane, reason = fill_mod.fit_plane(kept.means[ring], run.up, config, anchor)
+    if plane is None:
+        _fail(rec, "unsupported", reason)
+        run.unsupported.append({"id": o.id, "reason": reason, "ring_points": len(ring), "removed": len(r_i)})
+        return None
+    rec["plane"] = plane.as_dict()
+    region = fill_mod.fill_region(plane, kept.means, kept.opacity, obj_pts,
+                                  run.data.means[r_i].astype(np.float64), config)
+    rec["fill"] = {"exposed_cells": region.exposed, "disks": region.num,
+                   "kept_spacing_m": round(region.covered_spacing, 5)}
+    if region.num == 0:
+        _fail(rec, "nothing_exposed", "the kept surface covers the whole footprint")
+        return None
+    if region.num > config.fill.max_disks:
+        reason = f"{region.num} disks exceed max_disks {config.fill.max_disks}"
+        _fail(rec, "failed", reason)
+        run.failed.append({"id": o.id, "reason": reason})
+        return None
+    on_plane = np.abs(plane.height(kept.means)) <= config.fill.slab
+    colours = fill_mod.neighbour_colours(region.centres, kept.means[on_plane], kept.rgb[on_plane],
+                                         config.fill.colour_neighbours)
+    return _ObjectFill(o.id, region, fill_mod.disks(region, colours, config, 1))
 
 
-def _fail(record: dict, status: str, reason: str, err: BaseException | None = None) -> None:
-    record.update(status=status, reason=reason)
-    if err is not None:
-        record["traceback"] = traceback.format_exc(limit=4)
+def _disk_set(fills: list[_ObjectFill]) -> DiskSet:
+    """Every object's disks in one set, with their in-plane axes and owners."""
+    tangents = [np.broadcast_to(np.stack([f.region.u, f.region.v]), (f.region.num, 2, 3)) for f in fills]
+    return DiskSet(GaussianSplatData.join([f.disks for f in fills], like=fills[0].disks),
+                   np.concatenate(tangents).astype(np.float32),
+                   np.concatenate([np.full(f.region.num, f.id) for f in fills]))
 
 
 def _target_colours(disks: GaussianSplatData, owner: np.ndarray, frames: list[inpaint.Frame]) -> np.ndarray:
     """(N, 3) colour of each disk's pixel in the first frame that sees it (its own object's frames
-    first), NaN where none does."""
+    first), NaN where none does. owner: (N,) object id of each disk."""
     out = np.full((disks.num, 3), np.nan)
     for own_first in (True, False):
         for f in frames:
@@ -102,161 +278,86 @@ def _target_colours(disks: GaussianSplatData, owner: np.ndarray, frames: list[in
     return out
 
 
-def run_background(scene_dir: str | Path, out_dir: str | Path, config: BackgroundConfig | None = None,
-                   scene: SceneInput | None = None) -> dict:
-    """The background stage (module docstring). Returns the manifest as a dict."""
-    out_dir = Path(out_dir)
-    config = config or BackgroundConfig()
-    manifest = Manifest.load_or_create(out_dir)
-    objects = manifest.require("objects", "the object-construction stage")
-    instances = {i["id"]: i for i in manifest.get("instances") or []}
-    start = clock_t = time.perf_counter()
-    clock = _Clock()
-    scene = scene or load_scene(scene_dir, check_images=False)
-    data = scene.require_gaussians()
-    cameras = scene.require_cameras()
-    up = _up(manifest, scene)
-    crops = CropRenderer()
+def _colour_from_targets(run: _Run, disk_set: DiskSet, frames: list[inpaint.Frame], fills: list[_ObjectFill]
+                         ) -> DiskSet:
+    """The disks a target sees take its colour there (the others keep their neighbours' colour);
+    records the fraction per object."""
+    seen = _target_colours(disk_set.disks, disk_set.owner, frames)
+    has = ~np.isnan(seen[:, 0])
+    sh = disk_set.disks.sh.copy()
+    sh[has, 0] = rgb_to_sh_dc(seen[has])
+    for f in fills:
+        run.records[f.id]["fill"]["target_coloured"] = round(float(has[disk_set.owner == f.id].mean()), 4)
+    return dataclasses.replace(disk_set, disks=dataclasses.replace(disk_set.disks, sh=sh))
 
-    records: dict[int, dict] = {}
-    inputs: list[ObjectInput] = []
-    for entry in objects:
-        rec = records.setdefault(entry["id"], {"id": entry["id"], "status": None, "reason": None})
-        if entry.get("status") not in config.remove_statuses:
-            _fail(rec, "skipped", f"object status {entry.get('status')!r}: its Gaussians stay in the background")
-            continue
-        try:
-            if entry["id"] not in instances:
-                raise KeyError(f"no instance {entry['id']} in the manifest")
-            inputs.append(load_object(entry, instances[entry["id"]], out_dir))
-        except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
-            _fail(rec, "failed", f"inputs unreadable, not removed: {type(err).__name__}: {err}", err)
-    clock_t = clock.add("load", clock_t)
 
-    sets, removal_records = removal_sets(data, inputs, cameras, config, crops) if inputs else ([], [])
-    removed = np.zeros(data.num, bool)
-    for o, r_i, rec in zip(inputs, sets, removal_records):
-        removed[r_i] = True
-        records[o.id]["removed"] = rec
-    clock_t = clock.add("removal", clock_t)
+def _mark_filled(run: _Run, fills: list[_ObjectFill]) -> None:
+    """Objects with a fill and no other status are "filled" when a target saw them, else "untargeted"."""
+    for f in fills:
+        rec = run.records[f.id]
+        if rec["status"] is None:
+            rec["status"] = "filled" if rec.get("primary_view") else "untargeted"
 
-    kept = data.subset(~removed)
-    kept_means = kept.means.astype(np.float64)
-    kept_opacity = fill_mod.opacity(kept)
-    kept_rgb = np.clip(kept.sh[:, 0].astype(np.float64) * SH_C0 + 0.5, 0, 1)
-    unsupported, failed = [], []
-    disk_parts, tangent_parts, owner_parts = [], [], []
-    regions: dict[int, fill_mod.FillRegion] = {}
-    for o, r_i in zip(inputs, sets):
-        rec = records[o.id]
-        try:
-            obj_pts = fill_mod.object_points(o.q, o.mesh, config.grid, config.seed)
-            base = _base_height(manifest, o, up)
-            ring = fill_mod.ring_points(kept_means, kept_opacity, obj_pts, up, base, config)
-            centre = o.q.mean(0)
-            anchor = centre + (base - centre @ up) * up
-            plane, reason = fill_mod.fit_plane(kept_means[ring], up, config, anchor)
-            if plane is None:
-                _fail(rec, "unsupported", reason)
-                unsupported.append({"id": o.id, "reason": reason, "ring_points": len(ring),
-                                    "removed": len(r_i)})
-                continue
-            rec["plane"] = plane.as_dict()
-            region = fill_mod.fill_region(plane, kept_means, kept_opacity, obj_pts,
-                                          data.means[r_i].astype(np.float64), config)
-            rec["fill"] = {"exposed_cells": region.exposed, "disks": region.num,
-                           "kept_spacing_m": round(region.covered_spacing, 5)}
-            if region.num == 0:
-                _fail(rec, "nothing_exposed", "the kept surface covers the whole footprint")
-                continue
-            if region.num > config.max_disks:
-                reason = f"{region.num} disks exceed max_disks {config.max_disks}"
-                _fail(rec, "failed", reason)
-                failed.append({"id": o.id, "reason": reason})
-                continue
-            on_plane = np.abs(plane.height(kept_means)) <= config.slab
-            colours = fill_mod.neighbour_colours(region.centres, kept_means[on_plane], kept_rgb[on_plane],
-                                                 config.colour_neighbours)
-            disk_parts.append(fill_mod.disks(region, colours, config, 1))
-            tangent_parts.append(np.broadcast_to(np.stack([region.u, region.v]), (region.num, 2, 3)))
-            owner_parts.append(np.full(region.num, o.id))
-            regions[o.id] = region
-        except Exception as err:  # noqa: BLE001
-            reason = f"{type(err).__name__}: {err}"
-            _fail(rec, "failed", reason, err)
-            failed.append({"id": o.id, "reason": reason})
-    clock_t = clock.add("plane", clock_t)
 
-    fill_data, frames_record, refine_record = None, [], None
-    if disk_parts:
-        disk_set = DiskSet(GaussianSplatData.join(disk_parts, like=disk_parts[0]), np.concatenate(tangent_parts).astype(np.float32),
-                           np.concatenate(owner_parts))
-        frames, frames_record = _frames(data, removed, disk_set, regions, records, cameras, config, crops, out_dir,
-                                        failed)
-        clock_t = clock.add("targets", clock_t)
-        if frames:
-            seen = _target_colours(disk_set.disks, disk_set.owner, frames)
-            has = ~np.isnan(seen[:, 0])
-            sh = disk_set.disks.sh.copy()
-            sh[has, 0] = (seen[has] - 0.5) / SH_C0
-            disk_set = dataclasses.replace(disk_set, disks=dataclasses.replace(disk_set.disks, sh=sh))
-            for oid in regions:
-                own = disk_set.owner == oid
-                records[oid]["fill"]["target_coloured"] = round(float(has[own].mean()), 4)
-            if config.iterations > 0:
-                fill_data, refine_record = refine(disk_set, frames, config, data.sh.shape[1])
-            clock_t = clock.add("refine", clock_t)
-        if fill_data is None:
-            fill_data = disk_set.disks
-        for oid in regions:
-            rec = records[oid]
-            if rec["status"] is None:
-                rec["status"] = "filled" if rec.get("primary_view") else "untargeted"
-
-    kept_out = data.subset(~removed)
+def _write(run: _Run, removed: np.ndarray, fill_data: GaussianSplatData | None) -> tuple[GaussianSplatData, int]:
+    """Writes ``background.ply`` = (G0 \\ ∪R_i) ∪ G_fill; returns it and the number of kept Gaussians."""
+    kept_out = run.data.subset(~removed)
     parts = [kept_out] + ([fill_data] if fill_data is not None and fill_data.num else [])
-    background = GaussianSplatData.join(parts, like=data)
-    write_gaussian_ply(out_dir / OUTPUT, background)
-    clock.add("write", clock_t)
-    for rec in records.values():
+    background = GaussianSplatData.join(parts, like=run.data)
+    write_gaussian_ply(run.out_dir / layout.BACKGROUND, background)
+    return background, kept_out.num
+
+
+def _section(run: _Run, config: BackgroundConfig, removed: np.ndarray, background: GaussianSplatData,
+             kept_num: int, frames_record: list[dict], refine_record: dict | None) -> dict:
+    """The manifest's ``background`` section (module docstring); objects not otherwise recorded are
+    "removed"."""
+    for rec in run.records.values():
         if rec["status"] is None:
             rec["status"] = "removed"
-    manifest.set("background", {
-        "path": OUTPUT, "removed": int(removed.sum()), "filled": int(background.num - kept_out.num),
-        "source_gaussians": int(data.num), "gaussians": int(background.num),
-        "objects": [records[k] for k in sorted(records)], "unsupported_regions": unsupported,
-        "failed_completions": failed,
-        "targets": {"method": "external" if config.targets else config.inpaint,
-                    "folder": TARGETS if config.write_targets and frames_record else None,
+    return {
+        "path": layout.BACKGROUND, "removed": int(removed.sum()), "filled": int(background.num - kept_num),
+        "source_gaussians": int(run.data.num), "gaussians": int(background.num),
+        "objects": [run.records[k] for k in sorted(run.records)], "unsupported_regions": run.unsupported,
+        "failed_completions": run.failed,
+        "targets": {"method": "external" if config.targets.external else config.targets.inpaint,
+                    "folder": layout.BACKGROUND_TARGETS if config.targets.write and frames_record else None,
                     "frames": frames_record},
-        "refine": refine_record, "renders": crops.renders, "config": to_dict(config)})
-    for step, seconds in clock.seconds.items():
-        manifest.record_timing(step, seconds)
-    manifest.record_timing("background", time.perf_counter() - start)
-    manifest.write()
-    return manifest.data
+        "refine": refine_record, "renders": run.crops.renders, "config": to_dict(config)}
 
 
-def _frames(data: GaussianSplatData, removed: np.ndarray, disk_set: DiskSet, regions: dict, records: dict,
-            cameras: tuple[Camera, ...], config: BackgroundConfig, crops: CropRenderer, out_dir: Path,
-            failed: list) -> tuple[list[inpaint.Frame], list[dict]]:
-    """Primary views, one frame crop per object around its disks (plus external frames), the targets."""
-    wanted: list[tuple[int, list[int]]] = []  # (view, objects whose disks the crop is centred on)
-    for oid, region in regions.items():
-        primary = inpaint.choose_primary(oid, region.centres, region.plane.normal, cameras, config.grid)
+# --- targets ------------------------------------------------------------------------------------
+
+def _wanted_views(run: _Run, fills: list[_ObjectFill], grid: float, external_folder: Path | None
+                  ) -> tuple[list[tuple[int, list[int]]], set[int]]:
+    """(view, objects whose disks its crop is centred on) per frame: each object's primary view,
+    plus every view the editor's folder has a target for; and the set of those external views."""
+    wanted: list[tuple[int, list[int]]] = []
+    for f in fills:
+        primary = inpaint.choose_primary(f.id, f.region.centres, f.region.plane.normal, run.cameras, grid)
         if primary is None:
-            failed.append({"id": oid, "reason": "no camera sees the fill region: coloured from neighbours only"})
+            run.failed.append({"id": f.id, "reason": "no camera sees the fill region: coloured from neighbours only"})
             continue
-        records[oid]["primary_view"] = primary.as_dict(cameras)
-        wanted.append((primary.view, [oid]))
-    external_folder = Path(config.targets) if config.targets else None
+        run.records[f.id]["primary_view"] = primary.as_dict(run.cameras)
+        wanted.append((primary.view, [f.id]))
     external_frames = set()
     if external_folder is not None:
-        for view in inpaint.external_views(external_folder, cameras):
+        for view in inpaint.external_views(external_folder, run.cameras):
             external_frames.add(view)
             if view not in {v for v, _ in wanted}:
-                wanted.append((view, list(regions)))
-    margin = config.crop_margin_px + config.loss_ring_px + config.region_dilate_px
+                wanted.append((view, [f.id for f in fills]))
+    return wanted, external_frames
+
+
+def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_ObjectFill], config: BackgroundConfig
+            ) -> tuple[list[inpaint.Frame], list[dict]]:
+    """Primary views, one frame crop per object around its disks (plus external frames), the
+    targets (written under ``background/targets`` when asked); returns the frames and their records.
+    removed: (N,) bool over G0."""
+    external_folder = Path(config.targets.external) if config.targets.external else None
+    wanted, external_frames = _wanted_views(run, fills, config.fill.grid, external_folder)
+    cameras, data = run.cameras, run.data
+    margin = config.crops.margin_px + config.targets.loss_ring_px + config.targets.region_dilate_px
     boxes = []
     for view, oids in wanted:
         box = inpaint.frame_box(cameras[view], disk_set.disks.subset(np.isin(disk_set.owner, oids)),
@@ -265,7 +366,7 @@ def _frames(data: GaussianSplatData, removed: np.ndarray, disk_set: DiskSet, reg
             boxes.append((view, oids, box))
     if not boxes:
         return [], []
-    size = max(make_crop(cameras[v], v, b, config.crop_sizes, margin).size for v, _, b in boxes)
+    size = max(make_crop(cameras[v], v, b, config.crops.target_sizes, margin).size for v, _, b in boxes)
     crops_of = [(oids, make_crop(cameras[v], v, b, (size,), margin)) for v, oids, b in boxes]  # one static size
     pad = pass_bucket([len(cull(data, c.camera)) for _, c in crops_of])
     frames = []
@@ -276,11 +377,11 @@ def _frames(data: GaussianSplatData, removed: np.ndarray, disk_set: DiskSet, reg
                         if external_folder is not None and view in external_frames else None)
             frames.append(inpaint.build_frame(data, removed, disk_set.disks, disk_set.normals(),
                                               np.isin(disk_set.owner, oids), crop, oids, cameras[view],
-                                              np.zeros(3, np.float32), config, crops, pad, external))
+                                              np.zeros(3, np.float32), config, run.crops, pad, external))
         except RuntimeError as err:  # e.g. the renderer's buffers: these objects are untargeted
             for oid in oids:
-                records[oid].pop("primary_view", None)
-                failed.append({"id": oid, "reason": f"target frame {cameras[view].name}: {err}"})
-    if config.write_targets and frames:
-        inpaint.write_targets(out_dir / TARGETS, frames, cameras)
+                run.records[oid].pop("primary_view", None)
+                run.failed.append({"id": oid, "reason": f"target frame {cameras[view].name}: {err}"})
+    if config.targets.write and frames:
+        inpaint.write_targets(run.out_dir / layout.BACKGROUND_TARGETS, frames, cameras)
     return frames, [f.record(cameras) for f in frames]

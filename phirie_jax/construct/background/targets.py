@@ -6,7 +6,7 @@ image-space resolution on the exposed footprint), times a blur factor when the c
 images are available (variance of the Laplacian inside that area relative to the median of
 the five best views, capped at 1). Objects whose primary views coincide share that *frame*.
 
-A frame is a crop around all of its objects' regions (``construct.views``). In it, rendered once:
+A frame is a crop around all of its objects' regions (``views``). In it, rendered once:
 
 - the capture G0 with the removed Gaussians' indicator as a feature: their composited weight
   is the *region* (≥ ``region_weight``, grown by ``region_dilate_px``) — every removed object's,
@@ -21,7 +21,7 @@ channel in float). Region pixels the kept scene already explains (the tabletop s
 object from this side) keep their rendered colour. The loss mask is the region grown by
 ``loss_ring_px`` (inside the image).
 
-External editor targets (``BackgroundConfig.targets`` = a folder). Per frame, files named by
+External editor targets (``TargetsConfig.external`` = a folder). Per frame, files named by
 the camera's image stem:
 
     <stem>.png       the edited image: RGB, 8 or 16 bit, the camera's full image size;
@@ -29,7 +29,7 @@ the camera's image stem:
     <stem>_mask.png  optional: 8/16-bit, non-zero = fit these pixels (default: our loss mask)
 
 A stem matching a primary view replaces our target there; other stems add frames. The
-folder ``background/targets/`` that a run writes (``write_targets``) has this layout (plus
+folder ``background/targets/`` that a run writes (``TargetsConfig.write``) has this layout (plus
 ``<stem>_hole.png``, the inpainted pixels, and ``targets.json``), so an editor can start
 from it and hand it back.
 """
@@ -42,12 +42,12 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from phirie_jax.construct.background.config import BackgroundConfig
+from kernels.sh import rgb_to_sh_dc
+from phirie_jax.construct.background.config import BackgroundConfig, TargetsConfig
 from phirie_jax.construct.background.views import (
     Crop,
     CropRenderer,
     cull,
-    make_crop,
     pass_bucket,
     screen_radius_bound,
     view_colours,
@@ -58,7 +58,6 @@ from phirie_jax.types import Camera, GaussianSplatData
 SHARPNESS_CANDIDATES = 5  # views whose blur is measured for the primary choice
 FILL_ALPHA = 0.5          # the initial disks cover a pixel
 DEPTH_MARGIN_SIGMAS = 3.0  # the slab's depth band: the disks' depths ± this many (largest) σ plus one cell
-SH_C0 = 0.28209479177387814
 
 
 @dataclasses.dataclass(frozen=True)
@@ -283,51 +282,75 @@ def touching(data: GaussianSplatData, crop: Crop, reach: np.ndarray) -> np.ndarr
     return (z > 0) & (d - off <= r + 1.0)
 
 
+@dataclasses.dataclass(frozen=True)
+class _KeptRender:
+    """The kept scene in one crop, composed from its three layers (every array (C, C) or (C, C, 3))."""
+
+    rgb: np.ndarray          # (C, C, 3)
+    alpha: np.ndarray        # (C, C)
+    depth: np.ndarray        # (C, C) expected depth, inf where nothing is rendered
+    front_rgb: np.ndarray    # (C, C, 3)
+    front_trans: np.ndarray  # (C, C)
+    back_rgb: np.ndarray     # (C, C, 3)
+
+
+def _compose_kept(r_front, r_slab, r_back) -> _KeptRender:
+    """Front, slab and back renders composited front to back (the renderer's Σ wᵢ zᵢ per layer)."""
+    f_rgb, f_t = np.asarray(r_front.rgb), 1.0 - np.asarray(r_front.alpha)
+    s_rgb, s_t = np.asarray(r_slab.rgb), 1.0 - np.asarray(r_slab.alpha)
+    b_rgb = np.asarray(r_back.rgb)
+    rgb = f_rgb + f_t[..., None] * (s_rgb + s_t[..., None] * b_rgb)
+    alpha = 1.0 - f_t * s_t * (1.0 - np.asarray(r_back.alpha))
+    depth_sum = np.asarray(r_front.depth) + f_t * (np.asarray(r_slab.depth) + s_t * np.asarray(r_back.depth))
+    depth = np.where(alpha > 0, depth_sum / np.maximum(alpha, 1e-10), np.inf)
+    return _KeptRender(rgb, alpha, depth, f_rgb, f_t, b_rgb)
+
+
+def _region_hole_mask(removed_weight: np.ndarray, kept: _KeptRender, r_disks, crop: Crop, config: TargetsConfig
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(C, C) bool region, hole and loss mask of a frame from the removed Gaussians' composited
+    weight ``removed_weight`` (C, C), the kept render and the initial disks' render (module docstring)."""
+    region = removed_weight >= config.region_weight
+    if config.region_dilate_px > 0:
+        region = ndimage.binary_dilation(region, iterations=config.region_dilate_px)
+    region &= crop.inside
+    on_disks = np.asarray(r_disks.alpha) >= FILL_ALPHA
+    see_through = kept.depth > np.asarray(r_disks.depth_normalized) + config.plane_depth_tolerance
+    # only where new disks will be can the target differ from the kept render
+    hole = region & on_disks & ((kept.alpha < config.explained_alpha) | see_through)
+    mask = ndimage.binary_dilation(region, iterations=config.loss_ring_px) if config.loss_ring_px > 0 else region
+    return region, hole, mask & crop.inside
+
+
 def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: GaussianSplatData, disk_normals: np.ndarray,
                 own: np.ndarray, crop: Crop, objects: list[int], camera_full: Camera, background: np.ndarray,
                 config: BackgroundConfig, crops: CropRenderer, pad: int,
                 external: tuple[np.ndarray, np.ndarray | None] | None) -> Frame:
     """Renders, region, hole, target and layers of one frame (module docstring).
 
-    own: (N,) bool, the disks of the frame's objects: the frame's loss covers the pixels they can
+    removed: (N,) bool over ``data``; all_disks: (D,) every object's initial disks, disk_normals (D, 3);
+    own: (D,) bool, the disks of the frame's objects: the frame's loss covers the pixels they can
     reach, and the fit renders there every disk and kept slab Gaussian that can touch them.
+    background: (3,) colour behind the back layer; external: an editor's (target, mask) of the full image.
     """
-    cam = crop.camera
+    cam, fill = crop.camera, config.fill
     idx = cull(data, cam)
-    kept = idx[~removed[idx]]
+    kept_idx = idx[~removed[idx]]
     here = cull(all_disks, cam)
     disks_here = all_disks.subset(here)
-    reach_z = DEPTH_MARGIN_SIGMAS * config.max_disk_sigma * config.grid + config.grid
-    front, slab, back = split_layers(data, cam, kept, disks_here, disk_normals[here], config.slab, reach_z)
+    reach_z = DEPTH_MARGIN_SIGMAS * fill.max_disk_sigma * fill.grid + fill.grid
+    front, slab, back = split_layers(data, cam, kept_idx, disks_here, disk_normals[here], fill.slab, reach_z)
     zeros = np.zeros(3, np.float32)
     full = crops.render(data.subset(idx), crop, pad, features=removed[idx, None].astype(np.float32))
     r_front = crops.render(data.subset(front), crop, pad, background=zeros)
     r_back = crops.render(data.subset(back), crop, pad, background=background)
     slab_data = data.subset(slab)
-    baked = dataclasses.replace(slab_data, sh=((view_colours(slab_data, cam) - 0.5) / SH_C0)
+    baked = dataclasses.replace(slab_data, sh=rgb_to_sh_dc(view_colours(slab_data, cam))
                                 .astype(np.float32)[:, None, :], extra={}, layout=())
     r_slab = crops.render(baked, crop, pad, background=zeros)
     r_disks = crops.render(disks_here, crop, max(pad, pass_bucket([disks_here.num])), background=zeros)
-
-    f_rgb, f_t = np.asarray(r_front.rgb), 1.0 - np.asarray(r_front.alpha)
-    s_rgb, s_t = np.asarray(r_slab.rgb), 1.0 - np.asarray(r_slab.alpha)
-    b_rgb = np.asarray(r_back.rgb)
-    kept_rgb = f_rgb + f_t[..., None] * (s_rgb + s_t[..., None] * b_rgb)
-    kept_alpha = 1.0 - f_t * s_t * (1.0 - np.asarray(r_back.alpha))
-    # expected depth of the kept layers, composited front to back (the renderer's Σ wᵢ zᵢ per layer)
-    kept_depth_sum = np.asarray(r_front.depth) + f_t * (np.asarray(r_slab.depth) + s_t * np.asarray(r_back.depth))
-    kept_depth = np.where(kept_alpha > 0, kept_depth_sum / np.maximum(kept_alpha, 1e-10), np.inf)
-
-    region = np.asarray(full.features)[..., 0] >= config.region_weight
-    if config.region_dilate_px > 0:
-        region = ndimage.binary_dilation(region, iterations=config.region_dilate_px)
-    region &= crop.inside
-    on_disks = np.asarray(r_disks.alpha) >= FILL_ALPHA
-    see_through = kept_depth > np.asarray(r_disks.depth_normalized) + config.plane_depth_tolerance
-    # only where new disks will be can the target differ from the kept render
-    hole = region & on_disks & ((kept_alpha < config.explained_alpha) | see_through)
-    mask = ndimage.binary_dilation(region, iterations=config.loss_ring_px) if config.loss_ring_px > 0 else region
-    mask = mask & crop.inside
+    kept = _compose_kept(r_front, r_slab, r_back)
+    region, hole, mask = _region_hole_mask(np.asarray(full.features)[..., 0], kept, r_disks, crop, config.targets)
     if external is not None:
         target_full, mask_full = external
         target = crop.sample(target_full, camera_full.width, camera_full.height).astype(np.float32)
@@ -335,25 +358,16 @@ def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: Gaussia
             mask = crop.sample(mask_full, camera_full.width, camera_full.height).astype(bool) & crop.inside
         source = "external"
     else:
-        target = inpaint(kept_rgb.astype(np.float32), hole, config.inpaint, config.inpaint_radius)
-        source = config.inpaint
+        target = inpaint(kept.rgb.astype(np.float32), hole, config.targets.inpaint, config.targets.inpaint_radius)
+        source = config.targets.inpaint
     own_here = all_disks.subset(np.flatnonzero(own))
-    reach = disk_reach(own_here, crop, config.max_disk_sigma * config.grid, config.grid) if own_here.num \
+    reach = disk_reach(own_here, crop, fill.max_disk_sigma * fill.grid, fill.grid) if own_here.num \
         else np.zeros((crop.size, crop.size), bool)
     mask = mask & reach  # elsewhere the frame is the kept render: a constant of the loss
     near = touching(baked, crop, reach)
-    return Frame(crop.view, crop, objects, region, hole, mask.astype(np.float32), kept_rgb.astype(np.float32),
-                 target.astype(np.float32), f_rgb.astype(np.float32), f_t.astype(np.float32),
-                 b_rgb.astype(np.float32), reach, baked.subset(near), source)
-
-
-def frame_crop(view: int, camera: Camera, disks: GaussianSplatData, removed: GaussianSplatData,
-               config: BackgroundConfig) -> Crop | None:
-    box = frame_box(camera, disks, removed)
-    if box is None:
-        return None
-    margin = config.crop_margin_px + config.loss_ring_px + config.region_dilate_px
-    return make_crop(camera, view, box, config.crop_sizes, margin)
+    return Frame(crop.view, crop, objects, region, hole, mask.astype(np.float32), kept.rgb.astype(np.float32),
+                 target.astype(np.float32), kept.front_rgb.astype(np.float32), kept.front_trans.astype(np.float32),
+                 kept.back_rgb.astype(np.float32), reach, baked.subset(near), source)
 
 
 def write_targets(folder: Path, frames: list[Frame], cameras: tuple[Camera, ...]) -> list[str]:

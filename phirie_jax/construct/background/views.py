@@ -19,6 +19,7 @@ import numpy as np
 
 from kernels.project import NEAR_PLANE, SCREEN_DILATION, SIGMA_EXTENT
 from kernels.sh import sh_basis, sh_degree_from_coeffs
+from phirie_jax.geometry import logit
 from phirie_jax.render import Renderer, gaussian_bucket, pad_gaussians
 from phirie_jax.types import Camera, GaussianSplatData
 
@@ -105,7 +106,7 @@ def cull(data: GaussianSplatData, camera: Camera, candidates: np.ndarray | None 
     idx = np.arange(data.num) if candidates is None else np.asarray(candidates, np.int64)
     sub = data.subset(idx) if candidates is not None else data
     uv, z, r = screen_radius_bound(sub, camera)
-    opaque = sub.opacity_logits.astype(np.float64) >= np.log(ALPHA_MIN / (1 - ALPHA_MIN))
+    opaque = sub.opacity_logits.astype(np.float64) >= logit(ALPHA_MIN)
     keep = (z > NEAR_PLANE) & opaque & (uv[:, 0] + r >= 0) & (uv[:, 0] - r <= camera.width) \
         & (uv[:, 1] + r >= 0) & (uv[:, 1] - r <= camera.height)
     return idx[keep]

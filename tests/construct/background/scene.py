@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.sh import rgb_to_sh_dc
 from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.synthetic.capture import tangent_frames
 from phirie_jax.synthetic.scene import look_at
 from phirie_jax.types import Camera, GaussianSplatData
 
-SH_C0 = 0.28209479177387814
 ORANGE = np.array([0.85, 0.5, 0.2])
 COLOURS = {1: (0.9, 0.1, 0.1), 2: (0.1, 0.2, 0.9), 3: (0.1, 0.8, 0.2), 4: (0.9, 0.9, 0.1)}
 SPHERES = {1: ((-0.06, -0.02, 0.035), 0.035), 2: ((0.05, 0.03, 0.03), 0.03),
@@ -58,7 +58,7 @@ def _gaussians(points, normals, rgb, sigma, opacity=0.95, thickness=0.15):
 
     n = len(points)
     sh = np.zeros((n, 16, 3), np.float32)
-    sh[:, 0] = (np.asarray(rgb) - 0.5) / SH_C0
+    sh[:, 0] = rgb_to_sh_dc(np.asarray(rgb))
     quats = np.roll(Rotation.from_matrix(tangent_frames(normals)).as_quat(), 1, axis=1)
     return GaussianSplatData(
         means=np.asarray(points, np.float32), quats=quats.astype(np.float32),

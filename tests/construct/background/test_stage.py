@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.construct.background.config import BackgroundConfig, CropConfig, RefineConfig, RemovalConfig
 from phirie_jax.construct.background.removal import load_object, mask_votes
 from phirie_jax.construct.background.stage import run_background
 from phirie_jax.construct.background.views import CropRenderer
@@ -20,7 +20,8 @@ from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.scene import load_scene
 from tests.construct.background import scene as toy
 
-FAST = BackgroundConfig(crop_sizes=(64,), mask_crop_sizes=(32, 64), iterations=12, mask_views=6, crop_margin_px=4)
+FAST = BackgroundConfig(crops=CropConfig(target_sizes=(64,), mask_sizes=(32, 64), margin_px=4),
+                        refine=RefineConfig(iterations=12), removal=RemovalConfig(mask_views=6))
 FILL_TOL = 0.12      # mean |colour − orange| over the hidden patches, seen from above
 HOLE_ERROR = 0.25    # ... which, with the objects only removed, shows the background through the plane
 OBJECT_COLOUR_DIST = 0.25  # no target pixel may be this close to a removed object's colour
@@ -83,7 +84,7 @@ def test_removal_takes_the_objects_and_only_what_the_radii_allow(run):
     centres = np.array([toy.SPHERES[k][0] for k in (1, 2)])
     radii = np.array([toy.SPHERES[k][1] for k in (1, 2)])
     d, nearest = cKDTree(centres).query(scene.data.means[collateral])
-    assert np.all(d - radii[nearest] <= FAST.obs_radius + 1e-6)  # only the plane next to a removed object
+    assert np.all(d - radii[nearest] <= FAST.removal.obs_radius + 1e-6)  # only the plane next to a removed object
     floating = next(o for o in manifest["background"]["objects"] if o["id"] == 4)
     assert floating["removed"]["union"] == int(np.sum(labels == 4))  # exactly that object
 
@@ -96,9 +97,10 @@ def test_the_occlusion_test_is_what_keeps_the_distractors(run):
     cams = load_scene(scene.root / "scene", check_images=False).cameras
     distractors = set(np.flatnonzero(scene.labels == toy.DISTRACTOR))
     crops = CropRenderer()
-    one_vote = dataclasses.replace(FAST, mask_votes=1)
+    one_vote = dataclasses.replace(FAST, removal=dataclasses.replace(FAST.removal, mask_votes=1))
     with_test, record = mask_votes(scene.data, [obj], cams, one_vote, crops)
-    without, _ = mask_votes(scene.data, [obj], cams, dataclasses.replace(one_vote, occlusion_tolerance=1e9), crops)
+    no_test = dataclasses.replace(one_vote, removal=dataclasses.replace(one_vote.removal, occlusion_tolerance=1e9))
+    without, _ = mask_votes(scene.data, [obj], cams, no_test, crops)
     assert not distractors & set(with_test[0])
     assert distractors & set(without[0]), "no distractor is ever behind the sphere: the toy lost its teeth"
     assert record[0]["occluded_rejected"] >= 0
