@@ -56,19 +56,6 @@ def _instances(manifest: Manifest) -> dict[int, dict]:
     return {i["id"]: i for i in manifest.get("instances") or []}
 
 
-def _gravity_up(manifest: Manifest) -> list[float] | None:
-    """The physics stage's ``construct.gravity.up``, or None."""
-    return ((manifest.get("construct") or {}).get("gravity") or {}).get("up")
-
-
-def _support_height(manifest: Manifest, object_id: int) -> float | None:
-    """The physics stage's support height of an object (``construct.supports``), or None."""
-    for s in (manifest.get("construct") or {}).get("supports") or []:
-        if s.get("id") == object_id and s.get("height") is not None:
-            return float(s["height"])
-    return None
-
-
 # --- the run's state --------------------------------------------------------------------------
 
 @dataclasses.dataclass(frozen=True)
@@ -172,19 +159,7 @@ def _load_inputs(scene_dir: str | Path, out_dir: Path, manifest: Manifest, objec
             inputs.append(load_object(entry, instances[entry["id"]], out_dir))
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
             _fail(rec, "failed", f"inputs unreadable, not removed: {type(err).__name__}: {err}", err)
-    return _Run(out_dir, data, cameras, _up(manifest, scene), CropRenderer(), inputs, records)
-
-
-def _up(manifest: Manifest, scene: SceneInput) -> np.ndarray:
-    """(3,) unit up: the physics stage's gravity, else the cameras' up, else +z."""
-    up = _gravity_up(manifest)
-    if up is not None:
-        return np.asarray(up, np.float64) / np.linalg.norm(up)
-    if scene.cameras:
-        from phirie_jax.observe.auto import camera_up
-
-        return camera_up(list(scene.cameras))
-    return np.array([0.0, 0.0, 1.0])
+    return _Run(out_dir, data, cameras, manifest.up() / np.linalg.norm(manifest.up()), CropRenderer(), inputs, records)
 
 
 def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.ndarray]:
@@ -207,7 +182,7 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
         try:
-            fill = _object_fill(run, o, r_i, kept, _support_height(manifest, o.id), config)
+            fill = _object_fill(run, o, r_i, kept, manifest.support_heights().get(o.id), config)
         except Exception as err:  # noqa: BLE001
             reason = f"{type(err).__name__}: {err}"
             _fail(rec, "failed", reason, err)
