@@ -156,20 +156,58 @@ def masked_mean(values, mask):
     return jnp.sum(values * w) / jnp.maximum(jnp.sum(w), 1.0)
 
 
+def clipped_mean(d2, mask, tau):
+    """Mean over the valid rows of min(τ, √d2): d2 (N,) squared distances, mask (N,) bool or
+    None (every row valid), tau (). → ()."""
+    d = jnp.minimum(jnp.sqrt(d2), tau)
+    return jnp.mean(d) if mask is None else masked_mean(d, mask)
+
+
+def within_mean(d2, mask, radius):
+    """Fraction of the valid rows with √d2 ≤ radius: d2 (N,), mask (N,) bool or None, radius ().
+    → ()."""
+    within = (d2 <= radius * radius).astype(d2.dtype)
+    return jnp.mean(within) if mask is None else masked_mean(within, mask)
+
+
 def clipped_distance(queries, query_mask, targets, target_mask, tau, chunk: int = 256):
-    """d_τ(A, B) = mean over valid a of min(τ, min_b ‖a − b‖)  (brute force)."""
+    """d_τ(A, B) = mean over valid a of min(τ, min_b ‖a − b‖)  (brute force).
+
+    queries (Nq, 3); query_mask (Nq,) bool or None (all valid); targets (Nt, 3);
+    target_mask (Nt,) bool or None; tau (). → ().
+    """
     d2 = nearest_sq(queries, targets, target_mask, chunk)
-    return masked_mean(jnp.minimum(jnp.sqrt(d2), tau), query_mask)
+    return clipped_mean(d2, query_mask, tau)
+
+
+def clipped_chamfer_support(a, a_mask, b, b_mask, tau, chunk: int = 256):
+    """E_i = d_τ(A, B) + d_τ(B, A), its two terms, and the support of B: the fraction of valid
+    b within τ of A. → (E, d_τ(A, B), d_τ(B, A), support), each ().
+
+    a (Na, 3); a_mask (Na,) bool or None (all valid); b (Nb, 3); b_mask (Nb,) bool or None;
+    tau (). Each direction is one brute-force nearest-neighbour pass (``nearest_sq``), the
+    support reusing the B → A distances. Registration scores every hypothesis with this.
+    """
+    d2_ab = nearest_sq(a, b, b_mask, chunk)
+    d2_ba = nearest_sq(b, a, a_mask, chunk)
+    ab = clipped_mean(d2_ab, a_mask, tau)
+    ba = clipped_mean(d2_ba, b_mask, tau)
+    return ab + ba, ab, ba, within_mean(d2_ba, b_mask, tau)
 
 
 def clipped_chamfer(a, a_mask, b, b_mask, tau, chunk: int = 256):
-    """E = d_τ(A, B) + d_τ(B, A), and its two terms: → (E, d_τ(A, B), d_τ(B, A))."""
-    ab = clipped_distance(a, a_mask, b, b_mask, tau, chunk)
-    ba = clipped_distance(b, b_mask, a, a_mask, tau, chunk)
-    return ab + ba, ab, ba
+    """E = d_τ(A, B) + d_τ(B, A), and its two terms: → (E, d_τ(A, B), d_τ(B, A)).
+
+    a (Na, 3); a_mask (Na,) bool or None; b (Nb, 3); b_mask (Nb,) bool or None; tau ().
+    """
+    return clipped_chamfer_support(a, a_mask, b, b_mask, tau, chunk)[:3]
 
 
 def within_fraction(queries, query_mask, targets, target_mask, radius, chunk: int = 256):
-    """Fraction of valid queries with a valid target within ``radius``."""
+    """Fraction of valid queries with a valid target within ``radius``.
+
+    queries (Nq, 3); query_mask (Nq,) bool or None; targets (Nt, 3); target_mask (Nt,) bool
+    or None; radius (). → ().
+    """
     d2 = nearest_sq(queries, targets, target_mask, chunk)
-    return masked_mean((d2 <= radius * radius).astype(queries.dtype), query_mask)
+    return within_mean(d2, query_mask, radius)

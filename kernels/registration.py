@@ -34,12 +34,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kernels.chamfer import FAR, masked_mean, nearest_point, nearest_sq
+from kernels.chamfer import FAR, clipped_chamfer_support, nearest_point
 from kernels.pytree import pytree_dataclass
 
 # Signed source-up axes; index 0 (+z) is the candidate's own up, tried first by default.
 UP_AXES = np.array([[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], np.float64)
 AXIS_NAMES = ("+z", "+x", "-x", "+y", "-y", "-z")
+# AXIS_ROTATIONS[k]: the smallest proper rotation taking UP_AXES[k] to +z (a quarter turn for
+# ±x, ±y; for −z the half turn about x), as its signed permutation matrix. The host's
+# ``phirie_jax.geometry.rotation_to_z`` gives the same matrices (tests/kernels/test_registration.py).
+AXIS_ROTATIONS = np.array([
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1]],     # +z: identity
+    [[0, 0, -1], [0, 1, 0], [1, 0, 0]],    # +x: quarter turn about −y
+    [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],    # -x: quarter turn about +y
+    [[1, 0, 0], [0, 0, -1], [0, 1, 0]],    # +y: quarter turn about +x
+    [[1, 0, 0], [0, 0, 1], [0, -1, 0]],    # -y: quarter turn about −x
+    [[1, 0, 0], [0, -1, 0], [0, 0, -1]],   # -z: half turn about x
+], np.float64)
 ROBUST_LO, ROBUST_HI = 0.02, 0.98  # paper: scale from the 2nd–98th percentile extents
 MIN_EXTENT = 1e-9                  # guards the extent ratio of a flat candidate
 MIN_CORRESPONDENCES = 3.0          # fewer than this (weighted) → keep the current pose
@@ -126,17 +137,11 @@ class Registration:
 
 
 def axis_rotation(axis: np.ndarray) -> np.ndarray:
-    """(3, 3) proper rotation taking the unit ``axis`` to +z (a 90° or 180° turn for ±x, ±y, −z)."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.asarray(axis, np.float64)
-    if np.allclose(axis, z):
-        return np.eye(3)
-    if np.allclose(axis, -z):
-        return np.diag([1.0, -1.0, -1.0])  # 180° about x
-    k = np.cross(axis, z)
-    k /= np.linalg.norm(k)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + K + K @ K  # Rodrigues with sin = 1, cos = 0 (axis ⟂ z)
+    """(3, 3) the entry of ``AXIS_ROTATIONS`` for ``axis`` (3,), one of the rows of ``UP_AXES``."""
+    matches = np.flatnonzero(np.all(np.isclose(UP_AXES, np.asarray(axis, np.float64)), axis=1))
+    if len(matches) != 1:
+        raise ValueError(f"axis_rotation: {axis!r} is not one of UP_AXES")
+    return AXIS_ROTATIONS[matches[0]].copy()
 
 
 def yaw_matrix(yaw):
@@ -182,14 +187,14 @@ def place(model, rotation, scale, centre_xy, base_z):
 
 
 def hypothesis_energy(model, obs, obs_mask, rotation, scale, translation, tau, chunk: int):
-    """E(S) = d_τ(SP, Q) + d_τ(Q, SP) of one hypothesis; → (E, d_τ(SP, Q), d_τ(Q, SP), support)."""
+    """E(S) = d_τ(SP, Q) + d_τ(Q, SP) of one hypothesis; → (E, d_τ(SP, Q), d_τ(Q, SP), support).
+
+    model (Np, 3) canonical, every row valid; obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3);
+    scale (); translation (3,); tau (). The score is ``kernels.chamfer.clipped_chamfer_support``
+    of the placed model against Q (its only home); support = fraction of valid q within τ of SP.
+    """
     x = scale * model @ rotation.T + translation
-    d2_mq = nearest_sq(x, obs, obs_mask, chunk)
-    d2_qm = nearest_sq(obs, x, None, chunk)
-    mq = jnp.mean(jnp.minimum(jnp.sqrt(d2_mq), tau))
-    qm = masked_mean(jnp.minimum(jnp.sqrt(d2_qm), tau), obs_mask)
-    support = masked_mean((d2_qm <= tau * tau).astype(obs.dtype), obs_mask)
-    return mq + qm, mq, qm, support
+    return clipped_chamfer_support(x, None, obs, obs_mask, tau, chunk)
 
 
 def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk):
@@ -280,7 +285,7 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     base_z = jnp.where(has_support, support_z, q_lo[2])
     obs_ext = robust_extents(obs, obs_mask)
 
-    axis_rots = jnp.asarray(np.stack([axis_rotation(UP_AXES[a]) for a in spec.axes]), dtype)
+    axis_rots = jnp.asarray(AXIS_ROTATIONS[list(spec.axes)], dtype)
     s0 = jax.vmap(lambda r: scale_init(p_icp @ r.T, obs_ext))(axis_rots)  # (A,)
 
     yaws = jnp.arange(spec.num_yaws, dtype=dtype) * (2 * np.pi / spec.num_yaws)
