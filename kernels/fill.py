@@ -29,6 +29,7 @@ to [``min_log_scale``, ``max_log_scale``]). Its orientation (the plane's) and th
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -148,7 +149,7 @@ def init_state(params: FillParams):
     return optimizer().init(params)
 
 
-def fill_step(params: FillParams, opt_state, geom: FillGeometry, frames: FillFrame, lrs: FillParams, *,
+def fill_step(params: FillParams, opt_state: Any, geom: FillGeometry, frames: FillFrame, lrs: FillParams, *,
               width: int, config: RasterConfig, dssim_weight: float):
     """One Adam step on the disks.  lrs: a ``FillParams`` of per-field learning rates (scalars).
 

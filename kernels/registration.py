@@ -145,7 +145,7 @@ def axis_rotation(axis: np.ndarray) -> np.ndarray:
 
 
 def yaw_matrix(yaw):
-    """(..., 3, 3) rotation about +z."""
+    """yaw (...,) radians → (..., 3, 3) rotation about +z."""
     c, s = jnp.cos(yaw), jnp.sin(yaw)
     zero, one = jnp.zeros_like(c), jnp.ones_like(c)
     return jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1),
@@ -157,7 +157,8 @@ def yaw_matrix(yaw):
 
 def robust_extents(points, mask):
     """Height (z) and the two horizontal extents along the xy principal axes, each the
-    2nd–98th percentile range of the valid points. → (3,) [h, w_major, w_minor]."""
+    2nd–98th percentile range of the valid points: points (N, 3), mask (N,) bool.
+    → (3,) [h, w_major, w_minor]."""
     w = mask.astype(points.dtype)
     n = jnp.maximum(jnp.sum(w), 1.0)
     xy = points[:, :2]
@@ -172,15 +173,16 @@ def robust_extents(points, mask):
 
 
 def scale_init(model, obs_extents):
-    """Median of the three extent ratios observed / model (model already rotated to its up)."""
+    """Median of the three extent ratios observed / model: model (Np, 3) already rotated to its up;
+    obs_extents (3,) ``robust_extents`` of Q. → ()."""
     model_extents = robust_extents(model, jnp.ones(model.shape[0], bool))
     ratios = obs_extents / jnp.maximum(model_extents, MIN_EXTENT)
     return jnp.sum(ratios) - jnp.max(ratios) - jnp.min(ratios)
 
 
 def place(model, rotation, scale, centre_xy, base_z):
-    """Translation putting s R P's horizontal box centre at ``centre_xy`` and its lowest
-    point at ``base_z``. → (3,)."""
+    """Translation putting s R P's horizontal box centre at centre_xy (2,) and its lowest
+    point at base_z (). model (Np, 3); rotation (3, 3); scale (). → (3,)."""
     x = scale * model @ rotation.T
     lo, hi = jnp.min(x, axis=0), jnp.max(x, axis=0)
     return jnp.concatenate([centre_xy - 0.5 * (lo[:2] + hi[:2]), (base_z - lo[2])[None]])
@@ -197,9 +199,10 @@ def hypothesis_energy(model, obs, obs_mask, rotation, scale, translation, tau, c
     return clipped_chamfer_support(x, None, obs, obs_mask, tau, chunk)
 
 
-def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk):
+def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk: int):
     """Each q's nearest point of S P (placed), and its weight: 1 when q is valid and the match
-    is within ``max_corr``, else 0. → (Nq, 3), (Nq,)."""
+    is within max_corr (), else 0. model (Np, 3); obs (Nq, 3); obs_mask (Nq,) bool;
+    rotation (3, 3); scale (); translation (3,). → (Nq, 3), (Nq,)."""
     x = scale * model @ rotation.T + translation
     d2, matched = nearest_point(obs, x, None, chunk)
     weight = (obs_mask & (d2 <= max_corr * max_corr) & (d2 < FAR)).astype(obs.dtype)
@@ -207,7 +210,9 @@ def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_cor
 
 
 def _kabsch(src, dst, weight, yaw_only: bool):
-    """Weighted rigid (R, t) minimising Σ w ‖R src + t − dst‖² (R about +z only if yaw_only)."""
+    """Weighted rigid (R, t) minimising Σ w ‖R src + t − dst‖² (R about +z only if yaw_only).
+
+    src (N, 3); dst (N, 3); weight (N,). → (3, 3), (3,)."""
     n = jnp.maximum(jnp.sum(weight), 1e-12)
     cs = jnp.sum(src * weight[:, None], 0) / n
     cd = jnp.sum(dst * weight[:, None], 0) / n
@@ -228,7 +233,10 @@ def _kabsch(src, dst, weight, yaw_only: bool):
 
 def icp(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations: int,
         yaw_only: bool, chunk: int):
-    """Partial-to-complete point-to-point ICP with the scale fixed. → (R, t)."""
+    """Partial-to-complete point-to-point ICP with the scale fixed. → (R (3, 3), t (3,)).
+
+    model (Np, 3); obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3), scale (), translation (3,)
+    the start; max_corr () metres."""
 
     def step(_, state):
         rot, trans = state
@@ -241,7 +249,11 @@ def icp(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations
 
 def refine_scale(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations: int,
                  chunk: int):
-    """Scale and translation refinement with R fixed: closed-form least squares per step. → (s, t)."""
+    """Scale and translation refinement with R fixed: closed-form least squares per step.
+    → (s (), t (3,)).
+
+    model (Np, 3); obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3); scale (), translation (3,)
+    the start; max_corr () metres."""
 
     def step(_, state):
         s, trans = state
@@ -267,7 +279,8 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     """Search, refine and score; see the module docstring. ``spec`` is static.
 
     model (model_points, 3) canonical, random order; obs (Nq, 3) gravity frame, valid rows
-    first; obs_mask (Nq,); support_z () height of the support plane, used when has_support.
+    first; obs_mask (Nq,) bool; support_z () height of the support plane, used when
+    has_support () bool; tau () clip radius; max_corr () ICP correspondence radius (metres).
     """
     dtype = obs.dtype
     p_sweep = model[: spec.sweep_model_points]
