@@ -41,7 +41,7 @@ def view_votes(centres, K, world_to_camera, state):
 def carve(centres, Ks, world_to_cameras, states):
     """Summed votes of every view: (V,) keep counts, (V,) carve counts.
 
-    Ks (C, 3, 3), world_to_cameras (C, 4, 4), states (C, H, W) uint8.
+    centres (V, 3) world; Ks (C, 3, 3); world_to_cameras (C, 4, 4); states (C, H, W) uint8.
     """
     keep, carve_votes = jax.vmap(view_votes, in_axes=(None, 0, 0, 0))(centres, Ks, world_to_cameras, states)
     return jnp.sum(keep, axis=0), jnp.sum(carve_votes, axis=0)

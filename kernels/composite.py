@@ -75,8 +75,8 @@ class TileLists:
     tile_count: jax.Array    # (NT,) int32 entries of each tile (what fitted in C)
 
 
-def tile_pixels(grid: TileGrid, tile, dtype):
-    """Pixel centres of one tile: (P, 2) (x, y) and (P,) bool inside the image."""
+def tile_pixels(grid: TileGrid, tile, dtype: jnp.dtype):
+    """Pixel centres of one tile (tile () int32): (P, 2) (x, y) and (P,) bool inside the image."""
     ts = grid.tile_size
     ty, tx = tile // grid.tiles_x, tile % grid.tiles_x
     local = jnp.arange(grid.tile_pixels, dtype=jnp.int32)
@@ -104,12 +104,13 @@ def _chunk_alpha(pix, params, valid):
 
 
 def _dot(a, b):
+    """a (M, K) @ b (K, L) → (M, L) at full float32 precision."""
     # Full float32 accuracy: these sums are transmittances and colours, and a GPU would
     # otherwise be free to use TF32 (10-bit mantissa) for float32 products.
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
-def _triangle(size, dtype, *, strict: bool):
+def _triangle(size: int, dtype: jnp.dtype, *, strict: bool):
     """(B, B) M with M[k, j] = 1 where k ≤ j (k < j if strict): x @ M sums x over k ≤ j.
 
     Running products along a chunk are done as exp of such sums of log(1 − α): one small
@@ -118,7 +119,7 @@ def _triangle(size, dtype, *, strict: bool):
     return jnp.triu(jnp.ones((size, size), dtype), k=1 if strict else 0)
 
 
-def _forward_chunk(state, pix, params, valid, pos):
+def _forward_chunk(state: tuple, pix, params, valid, pos):
     """Composite one chunk into one tile's running state.
 
     state: T (P,), done (P,) bool, acc (P, CH), last (P,) int32 (1 + list position of the
@@ -142,8 +143,10 @@ def _forward_chunk(state, pix, params, valid, pos):
     return trans, done, acc, last
 
 
-def _forward_chunk_sequential(state, pix, params, valid, pos):
+def _forward_chunk_sequential(state: tuple, pix, params, valid, pos):
     """Same result as ``_forward_chunk``, as the literal 3DGS loop unrolled over the chunk.
+
+    state as there; pix (P, 2), params (B, D), valid (B,) bool, pos (B,) int32.
 
     Every step is elementwise over the tile's pixels, so XLA can fuse the whole chunk
     into one kernel with no (P, B) intermediates in memory. On an H100 that was 3× faster
@@ -171,11 +174,12 @@ def _forward_chunk_sequential(state, pix, params, valid, pos):
     return trans, done, acc, last
 
 
-def _backward_chunk(state, pix, params, valid, pos, last, g_acc):
+def _backward_chunk(state: tuple, pix, params, valid, pos, last, g_acc):
     """One chunk of one tile, back to front.
 
     state: T after this chunk (P,), rg (P,) = g·(everything composited behind this chunk,
-    T_final·g_T included). last (P,) int32, g_acc (P, CH) output cotangents.
+    T_final·g_T included). pix (P, 2), params (B, D), valid (B,) bool, pos (B,) int32;
+    last (P,) int32, g_acc (P, CH) output cotangents.
     Returns the state before this chunk and d params (B, D).
     """
     trans_after, rg_after = state
@@ -215,8 +219,9 @@ def _backward_chunk(state, pix, params, valid, pos, last, g_acc):
 # --- the tile work queue -------------------------------------------------------------
 
 
-def _gather_chunk(grid, chunk, params, lists, tiles, chunk_index):
-    """Rows of the chunk ``chunk_index`` of each of S tiles (NT = no tile).
+def _gather_chunk(grid: TileGrid, chunk: int, params, lists: TileLists, tiles, chunk_index):
+    """Rows of the chunk ``chunk_index`` (S,) int32 of each of S tiles: tiles (S,) int32 (NT = no
+    tile); params (N, D).
 
     Returns ids (S, B), rows (S, B, D), valid (S, B), pos (S, B), pixel centres (S, P, 2).
     """
@@ -234,7 +239,11 @@ def _gather_chunk(grid, chunk, params, lists, tiles, chunk_index):
 
 
 def _refill(finished, tiles, queue, n_work, next_q):
-    """Give each finished slot the next queued tile (NT when the queue is empty)."""
+    """Give each finished slot the next queued tile (NT when the queue is empty).
+
+    finished (S,) bool; tiles (S,) int32; queue (NT,) int32; n_work () int32 tiles with work;
+    next_q () int32 next queue position. → tiles (S,), next_q ().
+    """
     nt = queue.shape[0]
     rank = jnp.cumsum(finished.astype(jnp.int32)) - 1
     qpos = next_q + rank
@@ -243,12 +252,13 @@ def _refill(finished, tiles, queue, n_work, next_q):
 
 
 def _work_queue(work):
-    """Tiles with work, most work first: queue (NT,) int32, number with work."""
+    """Tiles with work (work (NT,) int32), most work first: queue (NT,) int32, number with work ()."""
     queue = jnp.argsort(-work, stable=True).astype(jnp.int32)
     return queue, jnp.sum(work > 0, dtype=jnp.int32)
 
 
-def _initial_slots(queue, n_work, slots):
+def _initial_slots(queue, n_work, slots: int):
+    """The first tile of each slot: queue (NT,) int32, n_work () int32. → tiles (slots,), next_q ()."""
     q = jnp.arange(slots, dtype=jnp.int32)
     nt = queue.shape[0]
     tiles = jnp.where(q < n_work, queue[jnp.minimum(q, nt - 1)], nt)
@@ -309,7 +319,8 @@ def composite_forward(grid: TileGrid, slots: int, chunk: int, params, lists: Til
 
 def composite_backward(grid: TileGrid, slots: int, chunk: int, params, lists: TileLists,
                        t_img, last_img, g_acc, g_t):
-    """d params (N, D) from output cotangents g_acc (NT, P, CH), g_t (NT, P)."""
+    """d params (N, D) from output cotangents g_acc (NT, P, CH), g_t (NT, P), given the forward's
+    params (N, D), t_img (NT, P) final transmittance and last_img (NT, P) int32 last contributors."""
     nt = grid.num_tiles
     n = params.shape[0]
     last_tile = jnp.max(last_img, axis=1)
@@ -351,7 +362,7 @@ def composite(grid: TileGrid, slots: int, chunk: int, sequential: bool, params, 
               tile_start, tile_count):
     """acc (NT, P, CH), final transmittance T (NT, P) and loop steps () int32, with a
     custom recompute-based VJP. params (N, D) is differentiable; the int32 list arrays
-    are bookkeeping.
+    (``TileLists``: gaussian_ids (C,), tile_start (NT,), tile_count (NT,)) are bookkeeping.
     """
     acc, trans, _, steps = composite_forward(grid, slots, chunk, params,
                                              TileLists(gaussian_ids, tile_start, tile_count),
@@ -359,14 +370,18 @@ def composite(grid: TileGrid, slots: int, chunk: int, sequential: bool, params, 
     return acc, trans, steps
 
 
-def _composite_fwd(grid, slots, chunk, sequential, params, gaussian_ids, tile_start,
-                   tile_count):
+def _composite_fwd(grid: TileGrid, slots: int, chunk: int, sequential: bool, params, gaussian_ids,
+                   tile_start, tile_count):
+    """``composite``'s forward and residuals; params (N, D), gaussian_ids (C,), tile_start (NT,),
+    tile_count (NT,) as there."""
     lists = TileLists(gaussian_ids, tile_start, tile_count)
     acc, trans, last, steps = composite_forward(grid, slots, chunk, params, lists, sequential)
     return (acc, trans, steps), (params, lists, trans, last)
 
 
-def _composite_bwd(grid, slots, chunk, sequential, residuals, cotangents):
+def _composite_bwd(grid: TileGrid, slots: int, chunk: int, sequential: bool, residuals: tuple,
+                   cotangents: tuple):
+    """``composite``'s VJP: residuals (params, lists, T, last), cotangents (g_acc, g_t, _)."""
     params, lists, trans, last = residuals
     g_acc, g_t, _ = cotangents  # the step count is an integer: no cotangent
     d_params = composite_backward(grid, slots, chunk, params, lists, trans, last, g_acc, g_t)
@@ -378,6 +393,7 @@ composite.defvjp(_composite_fwd, _composite_bwd)
 
 def composite_scan(grid: TileGrid, chunk: int, max_chunks: int, params, lists: TileLists):
     """The same forward for plain autodiff: every tile, ``max_chunks`` chunks, no early exit.
+    params (N, D).
 
     Entries past ``max_chunks · chunk`` in a tile are not composited: the caller must
     check the longest tile list against that (``RasterConfig.tile_capacity``).

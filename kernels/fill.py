@@ -29,11 +29,12 @@ to [``min_log_scale``, ``max_log_scale``]). Its orientation (the plane's) and th
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from kernels.gaussians import Gaussians
+from kernels.gaussians import Gaussians, concatenate
 from kernels.image_metrics import masked_l1_dssim
 from kernels.pytree import pytree_dataclass
 from kernels.raster import RasterConfig, rasterize
@@ -97,10 +98,6 @@ def fill_gaussians(params: FillParams, geom: FillGeometry) -> Gaussians:
         sh=params.dc[:, None, :])
 
 
-def _concat(a: Gaussians, b: Gaussians) -> Gaussians:
-    return jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=0), a, b)
-
-
 def render_frame(params: FillParams, geom: FillGeometry, frame: FillFrame, *, width: int,
                  config: RasterConfig):
     """One frame's composed crop.  Returns rgb (C, C, 3), overflow () bool, needed () int32.
@@ -112,7 +109,7 @@ def render_frame(params: FillParams, geom: FillGeometry, frame: FillFrame, *, wi
     take = lambda x: x[frame.disks] if jnp.ndim(x) else x  # noqa: E731 — the frame's disks only
     sub_geom = jax.tree.map(take, geom)
     sub_geom = sub_geom.replace(valid=sub_geom.valid & frame.disk_valid)
-    gaussians = _concat(slab, fill_gaussians(jax.tree.map(take, params), sub_geom))
+    gaussians = concatenate([slab, fill_gaussians(jax.tree.map(take, params), sub_geom)])
     out = rasterize(gaussians, frame.K, frame.world_to_camera, width=width, height=width, config=config)
     layered = out.rgb + (1.0 - out.alpha)[..., None] * frame.back_rgb
     rgb = frame.front_rgb + frame.front_trans[..., None] * layered
@@ -152,7 +149,7 @@ def init_state(params: FillParams):
     return optimizer().init(params)
 
 
-def fill_step(params: FillParams, opt_state, geom: FillGeometry, frames: FillFrame, lrs: FillParams, *,
+def fill_step(params: FillParams, opt_state: Any, geom: FillGeometry, frames: FillFrame, lrs: FillParams, *,
               width: int, config: RasterConfig, dssim_weight: float):
     """One Adam step on the disks.  lrs: a ``FillParams`` of per-field learning rates (scalars).
 

@@ -51,12 +51,12 @@ class Gaussians:
 
 
 def quat_normalize(q):
-    """(..., 4) → unit quaternions."""
+    """q (..., 4) → unit quaternions (..., 4)."""
     return q / jnp.sqrt(jnp.maximum(jnp.sum(q * q, axis=-1, keepdims=True), QUAT_EPS))
 
 
 def quat_multiply(a, b):
-    """Hamilton product a ⊗ b of (..., 4) wxyz quaternions (rotate by b, then by a)."""
+    """Hamilton product a ⊗ b of wxyz quaternions a (..., 4), b (..., 4) (rotate by b, then by a)."""
     aw, ax, ay, az = jnp.moveaxis(a, -1, 0)
     bw, bx, by, bz = jnp.moveaxis(b, -1, 0)
     return jnp.stack(
@@ -71,11 +71,12 @@ def quat_multiply(a, b):
 
 
 def quat_conjugate(q):
+    """q (..., 4) wxyz → its conjugate (..., 4)."""
     return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
 def quat_to_rotmat(q):
-    """(..., 4) wxyz (normalized here) → (..., 3, 3) rotation matrices."""
+    """q (..., 4) wxyz (normalized here) → (..., 3, 3) rotation matrices."""
     w, x, y, z = jnp.moveaxis(quat_normalize(q), -1, 0)
     rows = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -86,7 +87,7 @@ def quat_to_rotmat(q):
 
 
 def rotmat_to_quat(m):
-    """(..., 3, 3) rotation → (..., 4) unit wxyz with w ≥ 0.
+    """m (..., 3, 3) rotation → (..., 4) unit wxyz with w ≥ 0.
 
     Shepperd's method: of the four algebraically equal formulas, use the one with
     the largest pivot, so the result is accurate for every rotation (180° included).
@@ -115,7 +116,7 @@ def rotmat_to_quat(m):
 
 
 def covariance(log_scales, quats):
-    """(..., 3) log-scales, (..., 4) quats → (..., 3, 3) covariances R diag(s²) Rᵀ."""
+    """log_scales (..., 3), quats (..., 4) → (..., 3, 3) covariances R diag(s²) Rᵀ."""
     rot = quat_to_rotmat(quats)
     m = rot * jnp.exp(log_scales)[..., None, :]  # R S
     return m @ jnp.swapaxes(m, -1, -2)
@@ -133,12 +134,12 @@ class Sim3:
     scale: jax.Array        # (...,)  positive
 
     @staticmethod
-    def identity(dtype=jnp.float32) -> "Sim3":
+    def identity(dtype: jnp.dtype = jnp.float32) -> "Sim3":
         return Sim3(jnp.array([1.0, 0, 0, 0], dtype), jnp.zeros(3, dtype), jnp.ones((), dtype))
 
     @staticmethod
     def from_matrix(matrix) -> "Sim3":
-        """(..., 4, 4) similarity (s R | t) → Sim3; s = cbrt(det of the 3×3 block)."""
+        """matrix (..., 4, 4) similarity (s R | t) → Sim3; s = cbrt(det of the 3×3 block)."""
         block = matrix[..., :3, :3]
         scale = jnp.cbrt(jnp.linalg.det(block))
         rot = block / scale[..., None, None]
@@ -160,7 +161,7 @@ class Sim3:
         return jnp.concatenate([top, bottom], axis=-2)
 
     def apply(self, points):
-        """(..., P, 3) → (..., P, 3)."""
+        """points (..., P, 3) → (..., P, 3)."""
         return self.scale[..., None, None] * points @ jnp.swapaxes(
             self.rotation, -1, -2
         ) + self.translation[..., None, :]

@@ -29,7 +29,7 @@ def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> jax.A
 
 
 def _blur(x: jax.Array, window: jax.Array) -> jax.Array:
-    """(H, W, C) separable 'same' convolution with zero padding."""
+    """x (H, W, C) separable 'same' convolution with the 1D window (S,), zero padding. → (H, W, C)."""
     pad = window.shape[0] // 2
     h, w, c = x.shape
     planes = jnp.moveaxis(x, -1, 0)[:, None]  # (C, 1, H, W)
@@ -45,7 +45,7 @@ def _blur(x: jax.Array, window: jax.Array) -> jax.Array:
 
 
 def ssim_map(a: jax.Array, b: jax.Array, data_range: float = 1.0) -> jax.Array:
-    """(H, W, C), (H, W, C) → (H, W) SSIM per pixel, averaged over channels."""
+    """a (H, W, C), b (H, W, C) → (H, W) SSIM per pixel, averaged over channels."""
     window = gaussian_window()
     c1 = (SSIM_K1 * data_range) ** 2
     c2 = (SSIM_K2 * data_range) ** 2
@@ -59,7 +59,7 @@ def ssim_map(a: jax.Array, b: jax.Array, data_range: float = 1.0) -> jax.Array:
 
 
 def masked_mean(x: jax.Array, mask: jax.Array | None) -> jax.Array:
-    """Mean of (H, W) or (H, W, C) values over a (H, W) mask (all pixels when None)."""
+    """Mean of values x (H, W) or (H, W, C) over mask (H, W) (all pixels when None). → ()."""
     if mask is None:
         return jnp.mean(x)
     m = mask.astype(x.dtype)
@@ -69,22 +69,26 @@ def masked_mean(x: jax.Array, mask: jax.Array | None) -> jax.Array:
 
 
 def ssim(a: jax.Array, b: jax.Array, mask: jax.Array | None = None) -> jax.Array:
-    """() mean SSIM over the mask (the window still sees unmasked neighbours)."""
+    """() mean SSIM of a (H, W, C), b (H, W, C) over mask (H, W) or None (the window still sees
+    unmasked neighbours)."""
     return masked_mean(ssim_map(a, b), mask)
 
 
 def mse(a: jax.Array, b: jax.Array, mask: jax.Array | None = None) -> jax.Array:
+    """() mean squared error of a (H, W, C), b (H, W, C) over mask (H, W) or None."""
     return masked_mean((a - b) ** 2, mask)
 
 
 def psnr(a: jax.Array, b: jax.Array, mask: jax.Array | None = None, data_range: float = 1.0) -> jax.Array:
-    """() PSNR in dB over the mask: 10 log10(L² / MSE)."""
+    """() PSNR in dB of a (H, W, C), b (H, W, C) over mask (H, W) or None: 10 log10(L² / MSE)."""
     return 10.0 * jnp.log10(data_range**2 / jnp.maximum(mse(a, b, mask), MSE_FLOOR))
 
 
 def masked_l1_dssim(rendered: jax.Array, target: jax.Array, mask: jax.Array, dssim_weight: float
                     ) -> jax.Array:
-    """() the 3DGS photometric loss restricted to a mask: (1 − λ) L1 + λ (1 − SSIM) / 2."""
+    """() the 3DGS photometric loss restricted to a mask: (1 − λ) L1 + λ (1 − SSIM) / 2.
+
+    rendered (H, W, C); target (H, W, C); mask (H, W) weights."""
     l1 = masked_mean(jnp.abs(rendered - target), mask)
     dssim = masked_mean((1.0 - ssim_map(rendered, target)) / 2.0, mask)
     return (1.0 - dssim_weight) * l1 + dssim_weight * dssim

@@ -20,14 +20,17 @@ from kernels.chamfer import masked_mean, nearest_sq
 CM_PER_M = 100.0
 
 
-def _distances(a, a_mask, b, b_mask, chunk):
+def _distances(a, a_mask, b, b_mask, chunk: int):
+    """Nearest distances both ways: a (Na, 3), a_mask (Na,) bool, b (Nb, 3), b_mask (Nb,) bool.
+    → (Na,) a → B, (Nb,) b → A."""
     d2_ab = nearest_sq(a, b, b_mask, chunk)
     d2_ba = nearest_sq(b, a, a_mask, chunk)
     return jnp.sqrt(d2_ab), jnp.sqrt(d2_ba)
 
 
 def f1_score(pred, pred_mask, ref, ref_mask, tau, chunk: int = 256):
-    """(F1, precision, recall) at threshold ``tau`` (metres). pred (Np, 3), ref (Nr, 3), masks bool."""
+    """(F1, precision, recall) at threshold tau () metres. pred (Np, 3), pred_mask (Np,) bool,
+    ref (Nr, 3), ref_mask (Nr,) bool."""
     d_pr, d_rp = _distances(pred, pred_mask, ref, ref_mask, chunk)
     precision = masked_mean((d_pr <= tau).astype(pred.dtype), pred_mask)
     recall = masked_mean((d_rp <= tau).astype(pred.dtype), ref_mask)
@@ -36,13 +39,16 @@ def f1_score(pred, pred_mask, ref, ref_mask, tau, chunk: int = 256):
 
 
 def chamfer_cm(pred, pred_mask, ref, ref_mask, chunk: int = 256):
-    """Symmetric Chamfer distance in cm: ½ (mean pred→ref + mean ref→pred)."""
+    """Symmetric Chamfer distance in cm: ½ (mean pred→ref + mean ref→pred). pred (Np, 3),
+    pred_mask (Np,) bool, ref (Nr, 3), ref_mask (Nr,) bool. → ()."""
     d_pr, d_rp = _distances(pred, pred_mask, ref, ref_mask, chunk)
     return 0.5 * CM_PER_M * (masked_mean(d_pr, pred_mask) + masked_mean(d_rp, ref_mask))
 
 
 def geometry_metrics(pred, pred_mask, ref, ref_mask, taus=(0.02, 0.04), chunk: int = 256):
     """F1 at each τ and the Chamfer distance from one pair of distance passes.
+
+    pred (Np, 3), pred_mask (Np,) bool, ref (Nr, 3), ref_mask (Nr,) bool, taus (T,) metres.
 
     → (f1 (T,), precision (T,), recall (T,), chamfer_cm ()).
     """

@@ -46,14 +46,18 @@ class Projected:
 
 
 def camera_center(world_to_camera):
-    """(4, 4) → (3,) camera centre in world coordinates: −Rᵀt."""
+    """world_to_camera (4, 4) → (3,) camera centre in world coordinates: −Rᵀt."""
     rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
     return -rot.T @ trans
 
 
 def _project_one(mean, quat, log_scale, opacity_logit, sh, K, world_to_camera, center,
-                 width, height, tiles_x, tiles_y, tile_size, near):
-    """One Gaussian → the fields of ``Projected`` (scalars / small vectors)."""
+                 width: int, height: int, tiles_x: int, tiles_y: int, tile_size: int, near: float):
+    """One Gaussian → the fields of ``Projected`` (scalars / small vectors).
+
+    mean (3,); quat (4,) wxyz; log_scale (3,); opacity_logit (); sh (K, 3); K (3, 3);
+    world_to_camera (4, 4); center (3,) camera centre (``camera_center``).
+    """
     rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
     p = rot @ mean + trans  # (3,) camera-space mean
     z = p[2]

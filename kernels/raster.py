@@ -145,7 +145,7 @@ def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
 
 
 def _tiles_to_image(grid: TileGrid, x):
-    """(NT, P, ...) per-tile pixels → (H, W, ...) image."""
+    """x (NT, P, ...) per-tile pixels → (H, W, ...) image."""
     ts, ty, tx = grid.tile_size, grid.tiles_y, grid.tiles_x
     rest = x.shape[2:]
     x = x.reshape((ty, tx, ts, ts) + rest)
@@ -215,7 +215,7 @@ def render_batch(gaussians: Gaussians, Ks, world_to_cameras, *, width: int, heig
 
     Ks (B, 3, 3), world_to_cameras (B, 4, 4). gaussians: one set (means (N, 3)) shared by
     every camera, or B sets (means (B, N, 3)), the b-th rendered by the b-th camera.
-    features: None, (N, F) or (B, N, F); background: None, (3,) or (B, 3).
+    features (N, F) or (B, N, F) or None; background (3,) or (B, 3) or None.
     Returns a ``RasterOutput`` whose fields have a leading B.
     """
     g_axis = 0 if gaussians.means.ndim == 3 else None

@@ -34,12 +34,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kernels.chamfer import FAR, masked_mean, nearest_point, nearest_sq
+from kernels.chamfer import FAR, clipped_chamfer_support, nearest_point
 from kernels.pytree import pytree_dataclass
 
 # Signed source-up axes; index 0 (+z) is the candidate's own up, tried first by default.
 UP_AXES = np.array([[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], np.float64)
 AXIS_NAMES = ("+z", "+x", "-x", "+y", "-y", "-z")
+# AXIS_ROTATIONS[k]: the smallest proper rotation taking UP_AXES[k] to +z (a quarter turn for
+# ±x, ±y; for −z the half turn about x), as its signed permutation matrix. The host's
+# ``phirie_jax.geometry.rotation_to_z`` gives the same matrices (tests/kernels/test_registration.py).
+AXIS_ROTATIONS = np.array([
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1]],     # +z: identity
+    [[0, 0, -1], [0, 1, 0], [1, 0, 0]],    # +x: quarter turn about −y
+    [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],    # -x: quarter turn about +y
+    [[1, 0, 0], [0, 0, -1], [0, 1, 0]],    # +y: quarter turn about +x
+    [[1, 0, 0], [0, 0, 1], [0, -1, 0]],    # -y: quarter turn about −x
+    [[1, 0, 0], [0, -1, 0], [0, 0, -1]],   # -z: half turn about x
+], np.float64)
 ROBUST_LO, ROBUST_HI = 0.02, 0.98  # paper: scale from the 2nd–98th percentile extents
 MIN_EXTENT = 1e-9                  # guards the extent ratio of a flat candidate
 MIN_CORRESPONDENCES = 3.0          # fewer than this (weighted) → keep the current pose
@@ -126,21 +137,15 @@ class Registration:
 
 
 def axis_rotation(axis: np.ndarray) -> np.ndarray:
-    """(3, 3) proper rotation taking the unit ``axis`` to +z (a 90° or 180° turn for ±x, ±y, −z)."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.asarray(axis, np.float64)
-    if np.allclose(axis, z):
-        return np.eye(3)
-    if np.allclose(axis, -z):
-        return np.diag([1.0, -1.0, -1.0])  # 180° about x
-    k = np.cross(axis, z)
-    k /= np.linalg.norm(k)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + K + K @ K  # Rodrigues with sin = 1, cos = 0 (axis ⟂ z)
+    """(3, 3) the entry of ``AXIS_ROTATIONS`` for ``axis`` (3,), one of the rows of ``UP_AXES``."""
+    matches = np.flatnonzero(np.all(np.isclose(UP_AXES, np.asarray(axis, np.float64)), axis=1))
+    if len(matches) != 1:
+        raise ValueError(f"axis_rotation: {axis!r} is not one of UP_AXES")
+    return AXIS_ROTATIONS[matches[0]].copy()
 
 
 def yaw_matrix(yaw):
-    """(..., 3, 3) rotation about +z."""
+    """yaw (...,) radians → (..., 3, 3) rotation about +z."""
     c, s = jnp.cos(yaw), jnp.sin(yaw)
     zero, one = jnp.zeros_like(c), jnp.ones_like(c)
     return jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1),
@@ -152,7 +157,8 @@ def yaw_matrix(yaw):
 
 def robust_extents(points, mask):
     """Height (z) and the two horizontal extents along the xy principal axes, each the
-    2nd–98th percentile range of the valid points. → (3,) [h, w_major, w_minor]."""
+    2nd–98th percentile range of the valid points: points (N, 3), mask (N,) bool.
+    → (3,) [h, w_major, w_minor]."""
     w = mask.astype(points.dtype)
     n = jnp.maximum(jnp.sum(w), 1.0)
     xy = points[:, :2]
@@ -167,34 +173,36 @@ def robust_extents(points, mask):
 
 
 def scale_init(model, obs_extents):
-    """Median of the three extent ratios observed / model (model already rotated to its up)."""
+    """Median of the three extent ratios observed / model: model (Np, 3) already rotated to its up;
+    obs_extents (3,) ``robust_extents`` of Q. → ()."""
     model_extents = robust_extents(model, jnp.ones(model.shape[0], bool))
     ratios = obs_extents / jnp.maximum(model_extents, MIN_EXTENT)
     return jnp.sum(ratios) - jnp.max(ratios) - jnp.min(ratios)
 
 
 def place(model, rotation, scale, centre_xy, base_z):
-    """Translation putting s R P's horizontal box centre at ``centre_xy`` and its lowest
-    point at ``base_z``. → (3,)."""
+    """Translation putting s R P's horizontal box centre at centre_xy (2,) and its lowest
+    point at base_z (). model (Np, 3); rotation (3, 3); scale (). → (3,)."""
     x = scale * model @ rotation.T
     lo, hi = jnp.min(x, axis=0), jnp.max(x, axis=0)
     return jnp.concatenate([centre_xy - 0.5 * (lo[:2] + hi[:2]), (base_z - lo[2])[None]])
 
 
 def hypothesis_energy(model, obs, obs_mask, rotation, scale, translation, tau, chunk: int):
-    """E(S) = d_τ(SP, Q) + d_τ(Q, SP) of one hypothesis; → (E, d_τ(SP, Q), d_τ(Q, SP), support)."""
+    """E(S) = d_τ(SP, Q) + d_τ(Q, SP) of one hypothesis; → (E, d_τ(SP, Q), d_τ(Q, SP), support).
+
+    model (Np, 3) canonical, every row valid; obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3);
+    scale (); translation (3,); tau (). The score is ``kernels.chamfer.clipped_chamfer_support``
+    of the placed model against Q (its only home); support = fraction of valid q within τ of SP.
+    """
     x = scale * model @ rotation.T + translation
-    d2_mq = nearest_sq(x, obs, obs_mask, chunk)
-    d2_qm = nearest_sq(obs, x, None, chunk)
-    mq = jnp.mean(jnp.minimum(jnp.sqrt(d2_mq), tau))
-    qm = masked_mean(jnp.minimum(jnp.sqrt(d2_qm), tau), obs_mask)
-    support = masked_mean((d2_qm <= tau * tau).astype(obs.dtype), obs_mask)
-    return mq + qm, mq, qm, support
+    return clipped_chamfer_support(x, None, obs, obs_mask, tau, chunk)
 
 
-def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk):
+def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk: int):
     """Each q's nearest point of S P (placed), and its weight: 1 when q is valid and the match
-    is within ``max_corr``, else 0. → (Nq, 3), (Nq,)."""
+    is within max_corr (), else 0. model (Np, 3); obs (Nq, 3); obs_mask (Nq,) bool;
+    rotation (3, 3); scale (); translation (3,). → (Nq, 3), (Nq,)."""
     x = scale * model @ rotation.T + translation
     d2, matched = nearest_point(obs, x, None, chunk)
     weight = (obs_mask & (d2 <= max_corr * max_corr) & (d2 < FAR)).astype(obs.dtype)
@@ -202,7 +210,9 @@ def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_cor
 
 
 def _kabsch(src, dst, weight, yaw_only: bool):
-    """Weighted rigid (R, t) minimising Σ w ‖R src + t − dst‖² (R about +z only if yaw_only)."""
+    """Weighted rigid (R, t) minimising Σ w ‖R src + t − dst‖² (R about +z only if yaw_only).
+
+    src (N, 3); dst (N, 3); weight (N,). → (3, 3), (3,)."""
     n = jnp.maximum(jnp.sum(weight), 1e-12)
     cs = jnp.sum(src * weight[:, None], 0) / n
     cd = jnp.sum(dst * weight[:, None], 0) / n
@@ -223,7 +233,10 @@ def _kabsch(src, dst, weight, yaw_only: bool):
 
 def icp(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations: int,
         yaw_only: bool, chunk: int):
-    """Partial-to-complete point-to-point ICP with the scale fixed. → (R, t)."""
+    """Partial-to-complete point-to-point ICP with the scale fixed. → (R (3, 3), t (3,)).
+
+    model (Np, 3); obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3), scale (), translation (3,)
+    the start; max_corr () metres."""
 
     def step(_, state):
         rot, trans = state
@@ -236,7 +249,11 @@ def icp(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations
 
 def refine_scale(model, obs, obs_mask, rotation, scale, translation, max_corr, iterations: int,
                  chunk: int):
-    """Scale and translation refinement with R fixed: closed-form least squares per step. → (s, t)."""
+    """Scale and translation refinement with R fixed: closed-form least squares per step.
+    → (s (), t (3,)).
+
+    model (Np, 3); obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3); scale (), translation (3,)
+    the start; max_corr () metres."""
 
     def step(_, state):
         s, trans = state
@@ -262,7 +279,8 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     """Search, refine and score; see the module docstring. ``spec`` is static.
 
     model (model_points, 3) canonical, random order; obs (Nq, 3) gravity frame, valid rows
-    first; obs_mask (Nq,); support_z () height of the support plane, used when has_support.
+    first; obs_mask (Nq,) bool; support_z () height of the support plane, used when
+    has_support () bool; tau () clip radius; max_corr () ICP correspondence radius (metres).
     """
     dtype = obs.dtype
     p_sweep = model[: spec.sweep_model_points]
@@ -280,7 +298,7 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     base_z = jnp.where(has_support, support_z, q_lo[2])
     obs_ext = robust_extents(obs, obs_mask)
 
-    axis_rots = jnp.asarray(np.stack([axis_rotation(UP_AXES[a]) for a in spec.axes]), dtype)
+    axis_rots = jnp.asarray(AXIS_ROTATIONS[list(spec.axes)], dtype)
     s0 = jax.vmap(lambda r: scale_init(p_icp @ r.T, obs_ext))(axis_rots)  # (A,)
 
     yaws = jnp.arange(spec.num_yaws, dtype=dtype) * (2 * np.pi / spec.num_yaws)

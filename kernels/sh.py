@@ -74,7 +74,7 @@ def eval_sh(coeffs, dirs):
 
 
 def sh_to_rgb(coeffs, dirs):
-    """3DGS colour: clamp(eval_sh + 0.5, min=0).  (..., K, 3), (..., 3) → (..., 3)."""
+    """3DGS colour: clamp(eval_sh + 0.5, min=0).  coeffs (..., K, 3), dirs (..., 3) unit → (..., 3)."""
     return jnp.maximum(eval_sh(coeffs, dirs) + 0.5, 0.0)
 
 
@@ -120,7 +120,7 @@ _ROT_DIRS, _ROT_INVERSES = _build_rotation_tables()
 
 
 def sh_band_rotation(rotation, band: int):
-    """(..., 2l+1, 2l+1) matrices W with c'_l = W c_l, for rotations (..., 3, 3)."""
+    """(..., 2l+1, 2l+1) matrices W with c'_l = W c_l, for rotation (..., 3, 3) (NumPy or JAX)."""
     xp = np if isinstance(rotation, np.ndarray) else jnp
     lo, hi = band * band, (band + 1) ** 2
     dirs = xp.asarray(_ROT_DIRS[band - 1], dtype=rotation.dtype)

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 
 
 def voxel_centres(block_origins, voxel: float, res: int):
-    """(B, 3) block minimum corners → (B·res³, 3) voxel centres, block-major, then x, y, z."""
+    """block_origins (B, 3) block minimum corners → (B·res³, 3) voxel centres, block-major, then x, y, z."""
     idx = jnp.arange(res, dtype=block_origins.dtype)
     grid = jnp.stack(jnp.meshgrid(idx, idx, idx, indexing="ij"), axis=-1).reshape(-1, 3)  # (res³, 3)
     return (block_origins[:, None, :] + (grid[None] + 0.5) * voxel).reshape(-1, 3)
@@ -39,7 +39,7 @@ def frame_tsdf(centres, depth, K, world_to_camera, truncation):
     """One frame's observation of every voxel.
 
     centres (V, 3) world; depth (H, W) metres, 0 = no measurement; K (3, 3);
-    world_to_camera (4, 4). Returns tsdf (V,) in [−1, 1] (0 where unobserved) and
+    world_to_camera (4, 4); truncation () metres. Returns tsdf (V,) in [−1, 1] (0 where unobserved) and
     weight (V,) ∈ {0, 1}.
     """
     height, width = depth.shape
@@ -69,7 +69,7 @@ def fuse(block_origins, block_valid, depths, Ks, world_to_cameras, truncation, *
 
     block_origins (B, 3); block_valid (B,) bool (padding blocks stay empty);
     depths (F, H, W) with F a multiple of ``frames_per_step`` (pad with all-zero frames);
-    Ks (F, 3, 3); world_to_cameras (F, 4, 4). Returns tsdf (B, res, res, res) — the mean
+    Ks (F, 3, 3); world_to_cameras (F, 4, 4); truncation () metres. Returns tsdf (B, res, res, res) — the mean
     of the observations, 0 where none — and weight (B, res, res, res), the count.
     """
     centres = voxel_centres(block_origins, voxel, res)

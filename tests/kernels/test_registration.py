@@ -10,8 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from kernels.chamfer import clipped_chamfer
 from kernels.registration import (
     AXIS_NAMES,
+    AXIS_ROTATIONS,
     UP_AXES,
     SearchSpec,
     _kabsch,
@@ -24,6 +26,7 @@ from kernels.registration import (
     scale_init,
     yaw_matrix,
 )
+from phirie_jax.geometry import rotation_to_z
 from tests.kernels.shapes import in_random_frame, l_shape, padded, partial_view
 
 TAU = 0.03
@@ -31,6 +34,8 @@ MAX_CORR = 0.06
 ROT_TOL_DEG = 3.0     # rotation recovered to within this
 SCALE_TOL = 0.02      # relative
 TRANS_TOL = 0.006     # metres
+ENERGY_TOL = 1e-6     # metres: registration's E against kernels.chamfer's on the same placement (float32
+                      # rounding of the placement computed inside and outside the jitted program)
 # a smaller program than the paper's (fast CPU tests); same search: 6 axes × 36 yaws × 3 scales
 TEST_SPEC = SearchSpec(model_points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024,
                        icp_obs_points=1024, score_obs_points=1024, hypothesis_batch=108, snap_to_support=True)
@@ -68,6 +73,44 @@ def test_axis_rotations_are_proper_and_take_the_axis_up():
         np.testing.assert_allclose(r @ axis, [0, 0, 1], atol=1e-12)
         np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
         assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+def test_axis_rotation_table_is_the_hosts_rotation_to_z():
+    assert AXIS_ROTATIONS.shape == (len(UP_AXES), 3, 3) and len(AXIS_NAMES) == len(UP_AXES)
+    for k, axis in enumerate(UP_AXES):
+        np.testing.assert_array_equal(AXIS_ROTATIONS[k], rotation_to_z(axis))
+        np.testing.assert_array_equal(axis_rotation(axis), AXIS_ROTATIONS[k])
+
+
+def test_hypothesis_energy_is_chamfers_clipped_chamfer_of_the_placed_model():
+    rng = np.random.default_rng(5)
+    model = rng.normal(0, 1, (300, 3)).astype(np.float32)
+    obs = (rng.normal(0, 0.05, (200, 3)) + [0.2, 0.1, 0.5]).astype(np.float32)
+    obs_p, mask = padded(obs, 256)
+    rot = jnp.asarray(np.asarray(yaw_matrix(jnp.float32(0.3))) @ AXIS_ROTATIONS[1], jnp.float32)
+    s, t = jnp.float32(0.05), jnp.float32([0.2, 0.1, 0.5])
+    e, mq, qm, _ = hypothesis_energy(jnp.asarray(model), jnp.asarray(obs_p), jnp.asarray(mask), rot, s, t, TAU, 64)
+    placed = s * jnp.asarray(model) @ rot.T + t
+    ref = clipped_chamfer(placed, jnp.ones(len(model), bool), jnp.asarray(obs_p), jnp.asarray(mask), TAU, 64)
+    np.testing.assert_allclose([float(e), float(mq), float(qm)], [float(x) for x in ref], atol=ENERGY_TOL)
+
+
+def test_registered_energy_is_chamfers_E_of_the_returned_placement(shape):
+    points, q = shape
+    spec = SearchSpec(axes=(0, 3), num_yaws=4, scale_multipliers=(1.0,), model_points=1024, sweep_model_points=128,
+                      sweep_obs_points=128, icp_model_points=256, icp_obs_points=256, score_obs_points=512,
+                      icp_iterations=2, scale_iterations=2, refine_other_axes=1, hypothesis_batch=8)
+    model = points[np.random.default_rng(3).permutation(len(points))[:1024]].astype(np.float32)
+    result = run(model, q, bucket=1024, spec=spec)
+    obs, mask = padded(q, 1024)
+    obs, mask = obs[:spec.score_obs_points], mask[:spec.score_obs_points]
+    for row in range(len(result.energy)):
+        placed = float(result.scale[row]) * model @ np.asarray(result.rotation[row]).T + np.asarray(result.translation[row])
+        e, ab, ba = clipped_chamfer(jnp.asarray(placed), jnp.ones(len(model), bool), jnp.asarray(obs),
+                                    jnp.asarray(mask), TAU, spec.chunk)
+        np.testing.assert_allclose([float(result.energy[row]), float(result.model_to_obs[row]),
+                                    float(result.obs_to_model[row])], [float(e), float(ab), float(ba)],
+                                   atol=ENERGY_TOL)
 
 
 def test_energy_matches_numpy_reference():
