@@ -81,7 +81,6 @@ def background_scores(truth, convert_dir: Path, manifest: dict, camera, backgrou
 
 def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     from rich.console import Console
-    from rich.table import Table
 
     from phirie_jax.interact.environment import Environment
     from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
@@ -118,6 +117,18 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     write_png(media / "after_conversion.png", result["frames"][0] / 255.0)
     write_png(media / "after_shot.png", result["frames"][-1] / 255.0)
 
+    scores = (background_scores(truth, convert_dir, manifest, env.camera(rollout_config.camera), bg)
+              if (manifest.get("background") or {}).get("path") else None)
+    console.print(_summary_table(out, scene, scene_dir, convert_dir, media, manifest, result, previews, scores,
+                                 rollout_config.camera, {**timings, **_stage_timings(manifest)}))
+    return {"timings": timings, "previews": previews, "manifest": manifest, "background_scores": scores}
+
+
+def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: Path, manifest: dict, result: dict,
+                   previews: list[dict], scores: dict | None, camera: int, timings: dict[str, float]):
+    """What was converted, how well (against the synthetic truth) and how long it took."""
+    from rich.table import Table
+
     table = Table(title=f"phirie demo → {out}")
     table.add_column("what")
     table.add_column("value")
@@ -138,22 +149,19 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     background = manifest.get("background") or {}
     table.add_row("background", f"{background.get('removed', '—')} Gaussians removed, "
                                 f"{background.get('filled', '—')} filled")
-    scores = None
-    if background.get("path"):
-        scores = background_scores(truth, convert_dir, manifest, env.camera(rollout_config.camera), bg)
-        table.add_row("background vs truth", f"camera {rollout_config.camera}: uncovered region "
+    if scores is not None:
+        table.add_row("background vs truth", f"camera {camera}: uncovered region "
                       f"({scores['region_px']} px) {scores['uncovered']:.1f} dB PSNR (removal alone "
                       f"{scores['uncovered_removal_only']:.1f} dB), elsewhere {scores['outside']:.1f} dB")
     table.add_row("shot", f"object {result['shot'].get('hit')} moved "
                           f"{100 * result['moved_m'].get(result['shot'].get('hit'), 0.0):.1f} cm")
     for row in previews:
         table.add_row(f"re-render {row['name']}", f"{row['psnr_db']} dB PSNR against the written image")
-    for stage, seconds in {**timings, **_stage_timings(manifest)}.items():
+    for stage, seconds in timings.items():
         table.add_row(f"time: {stage}", f"{seconds:.1f} s")
     table.add_row("outputs", f"{convert_dir} (scene.xml, manifest.json, objects/, background.ply), "
                              f"{media} (rollout.mp4, before/after stills, previews)")
-    console.print(table)
-    return {"timings": timings, "previews": previews, "manifest": manifest, "background_scores": scores}
+    return table
 
 
 def _stage_timings(manifest: dict) -> dict[str, float]:
