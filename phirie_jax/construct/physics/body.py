@@ -40,7 +40,7 @@ class ObjectBody:
     mass: MassProperties           # body frame
     priors: Priors
     files: tuple[str, ...] = ()    # the parts' OBJ files (canonical frame, unscaled), relative to the
-                                   # output folder; empty: the parts are written inline
+                                   # output folder (scene.xml's meshes); empty for drop-test candidates
 
     @property
     def scale(self) -> float:
@@ -76,7 +76,7 @@ def full_inertia(m: MassProperties) -> list[float]:
 
 
 def add_body(spec: mujoco.MjSpec, body: ObjectBody, name: str | None = None, placed: bool = True,
-             pad_to: int = 0):
+             inline: bool = False, pad_to: int = 0):
     """Add ``body`` to ``spec``'s world as a free body; returns the ``MjsBody``.
 
     Args:
@@ -85,11 +85,10 @@ def add_body(spec: mujoco.MjSpec, body: ObjectBody, name: str | None = None, pla
         name: body name (default ``body_name(body.id)``); its meshes and geoms are ``<name>_part_NN``.
         placed: at the pose's rotation and translation (a scene); else at the origin (the drop
             test sets the free joint's qpos).
+        inline: meshes from the scaled parts' vertices (the drop test); else from ``body.files``
+            scaled by the pose's scale (``scene.xml``).
         pad_to: ghost parts (``collision.ghost_part`` of the first part) are added up to this many
-            parts (the drop test's static part bucket); inline parts only.
-
-    Meshes come from ``body.files`` scaled by the pose's scale when it has files, else inline from
-    the scaled parts.
+            parts (the drop test's static part bucket); inline meshes only.
     """
     name = name or body_name(body.id)
     kwargs = {}
@@ -103,10 +102,10 @@ def add_body(spec: mujoco.MjSpec, body: ObjectBody, name: str | None = None, pla
     b.ipos = body.mass.com
     b.fullinertia = full_inertia(body.mass)
     names = [f"{name}_part_{k:02d}" for k in range(max(len(body.parts), pad_to))]
-    if body.files:
+    if not inline:
         if len(body.files) != len(names):
             raise ValueError(f"body {name}: {len(body.files)} part files for {len(names)} parts "
-                             "(ghost parts pad inline parts only)")
+                             "(expected one file per part; ghost parts pad inline meshes only)")
         for mesh, path in zip(names, body.files):
             spec.add_mesh(name=mesh, file=path, scale=[body.scale] * 3)
     else:

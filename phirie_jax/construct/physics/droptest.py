@@ -96,7 +96,7 @@ def build_model(body: DropBody, bucket: int, config: DropTestConfig) -> mujoco.M
     # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
     spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
                             size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
-    add_body(spec, body.body, name="body", placed=False, pad_to=bucket)
+    add_body(spec, body.body, name="body", placed=False, inline=True, pad_to=bucket)
     return spec.compile()
 
 
