@@ -3,11 +3,11 @@
 For every accepted object of the manifest (written by the object-construction stage):
 repair its canonical mesh, decompose it with CoACD (hull fallback recorded), write the parts
 to ``objects/<id>/collision/part_NN.obj`` (canonical frame), set the physics priors and the
-uniform-density inertia (the object's ``body.ObjectBody``), write ``objects/<id>/object.urdf``. A mesh that cannot be a rigid
-body (empty, non-manifold, zero volume, MuJoCo refuses it) makes that object "failed" with
-the reason; the others go on. Then the supports are fitted, ``scene.xml`` is written and
-loaded back, all objects are drop-tested in one batch (``run_droptest``, which also re-runs
-on an exported folder alone), and a 2 s free settle of the whole scene is recorded.
+uniform-density inertia (its ``body.ObjectBody``), write ``objects/<id>/object.urdf``. A mesh
+that cannot be a rigid body (empty, non-manifold, zero volume, MuJoCo refuses it) makes that
+object "failed" with the reason; the others go on. Then the supports are fitted, ``scene.xml``
+is written and loaded back, all objects are drop-tested in one batch (``run_droptest``, which
+also re-runs on an exported folder alone), and a 2 s free settle of the whole scene is recorded.
 
 Manifest: each object gets ``collision``, ``mass``, ``friction``, ``physics`` (priors, mass
 properties, collision report, URDF path, body name), ``drop_test`` and its ``checks.settling``
