@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from kernels.gaussians import Gaussians, Sim3, concatenate, transform_bodies
+from phirie_jax.construct.physics.body import body_name
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.transforms_json import read_transforms_json
@@ -115,7 +116,7 @@ class Environment:
         self.objects: list[SceneObject] = []
         parts, body, start = [], [], 0
         for index, (object_id, pose0, splats) in enumerate(objects):
-            name = f"object_{object_id}"
+            name = body_name(object_id)
             body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
             if body_id < 0:
                 raise SceneInputError(self.out_dir / SCENE_FILE, f"body '{name}'",

@@ -13,12 +13,10 @@ import dataclasses
 class DropTestConfig:
     """The drop test (paper protocol): each body alone on a plane, 240 Hz, settle then free.
 
-    Spawned in its registered orientation with its lowest collision point on the plane (the
-    paper's code spawned with interpenetration; we do not). During settling the velocities
-    are zeroed after every step, so the body slides quasi-statically into a rest pose; then it
-    moves freely. Stable if the centre of mass (PyBullet's base frame, what the paper's code
-    reads) ends < ``max_drift`` from where it was spawned and no lower than ``min_final_height``
-    relative to the plane.
+    Spawned in its registered orientation with its lowest collision point on the plane;
+    velocities zeroed after every settling step, then free motion. Stable if the centre of mass
+    ends < ``max_drift`` from its spawn and no lower than ``min_final_height`` relative to the
+    plane. Measurements behind the defaults: ``experiments/results/physics_notes.md``.
 
     Attributes:
         timestep: seconds per step (paper: 240 Hz).
@@ -26,34 +24,21 @@ class DropTestConfig:
         free_time: free motion after settling (paper: 2 s).
         max_drift: stable if the centre of mass drifts less than this (paper: 3 cm).
         min_final_height: ... and its final height above the plane is at least this (paper: −5 cm).
-        backend: "mjx" (every body of a batch in one vmapped, jitted program), "mujoco" (the C
-            library, one body after another; the reference) or "auto": MJX when JAX has an
-            accelerator, else the C library. Measured on a 2-core CPU
-            (``experiments/results/bench_droptest_cpu.json``): C 100K steps/s, MJX 50K steps/s
-            plus ~15 s of compilation per part bucket, so a CPU uses C.
-        solver / jacobian: MuJoCo's constraint solver ("newton" or "cg") and mass-matrix layout
-            ("dense" or "sparse"), the same for both backends. Measured on an H100
-            (``experiments/results/droptest_tuning_h100_solvers.json``): CG takes 2–3× longer for
-            the same verdicts, and the sparse layout (no cuSOLVER calls in MJX) is no faster.
-        solver_iterations / line_search_iterations / tolerance: ours — the Newton solver's limits,
-            the same for both backends. MJX's step is latency-bound on a GPU and each solver
-            iteration adds sequential loop trips, so this is the largest lever there
-            (``experiments/results/droptest_tuning_h100.json``, 1024 candidates): 0.70 s with
-            (4, 4) against 1.06 s with (20, 10). MuJoCo C with (4, 4) gives the same verdicts as
-            with MuJoCo's defaults (100, 50, 1e-8) on all 1024 cases of the benchmark set (drifts
-            within 42 nm median); MJX agrees with C on all of them and on 99.2 % of the hard set.
-            Fewer is not safe in MJX: with 2 iterations 5 of 1024 diverged and 85.5 % of the hard
-            set agreed; its single-iteration path takes a 0/0 line-search step when the warm
-            start is already optimal.
+        backend: "mjx" (one vmapped program per batch), "mujoco" (the C library, the reference) or
+            "auto" (MJX with an accelerator, else C: faster on a CPU; physics_notes.md "Backend").
+        solver / jacobian: MuJoCo's solver ("newton" or "cg") and mass-matrix layout ("dense" or
+            "sparse"): Newton/dense is fastest for the same verdicts (physics_notes.md "Solver").
+        solver_iterations / line_search_iterations / tolerance: ours, the fewest that keep the
+            verdicts of MuJoCo's defaults in C and MJX (physics_notes.md "Solver limits").
         vertex_budget: vertices of every convex part, padded (static shape; ≤ 64 so MJX collides
-            hulls cheaply). Hulls with more vertices are decimated first.
-        part_buckets: a body's convex parts are padded to the first bucket that holds them with
-            "ghost" parts inside its first part (static shapes: one program per bucket).
-        min_batch: candidates are padded to a power of two, at least this (static shapes: a
-            second batch of the same bucket reuses the compiled program).
+            hulls cheaply; physics_notes.md "Static shapes").
+        part_buckets: parts padded with ghost parts to the first bucket that holds them (one
+            program per bucket; physics_notes.md "Static shapes").
+        min_batch: candidates padded to a power of two, at least this (a second batch reuses the
+            program; physics_notes.md "Static shapes").
         max_batch: larger batches run in chunks of this many (bounded memory).
-        unroll: protocol steps per loop trip of the MJX program (1: on an H100, 4 was no faster
-            and compiled 2.5× slower).
+        unroll: protocol steps per loop trip of the MJX program (1: more was no faster and compiled
+            slower; physics_notes.md "Static shapes").
     """
 
     timestep: float = 1.0 / 240.0
@@ -97,17 +82,16 @@ class DropTestConfig:
 class PhysicsConfig:
     """Simulator assets: collision geometry, physics priors, MJCF/URDF export, drop tests.
 
+    Measurements behind the defaults: ``experiments/results/physics_notes.md``.
+
     Attributes:
         mass: kg per object unless ``category_masses`` names its category (paper: 0.3 kg).
         category_masses: ((category, kg), ...) overrides of ``mass`` by instance category.
         friction: sliding friction coefficient (paper: 0.5); torsional/rolling stay MuJoCo's
-            defaults (0.005, 0.0001).
-        restitution: coefficient of restitution (paper: 0). MuJoCo has no restitution; its
-            contact is a damped spring reaching its reference in ``contact_timeconst`` with
-            damping ratio ζ, and a linear damped spring rebounds with e = exp(−πζ/√(1−ζ²)), so
-            ζ = −ln e / √(π² + ln² e): restitution 0 is ζ = 1, critical damping (solref
-            ``(timeconst, 1)``).
-        contact_timeconst: solref time constant, s (MuJoCo's default 0.02 ≥ 2 × the 240 Hz step).
+            defaults (physics_notes.md "Friction and restitution").
+        restitution: coefficient of restitution (paper: 0), as the solref damping ratio (0 is
+            critical damping; physics_notes.md "Friction and restitution").
+        contact_timeconst: solref time constant, s (MuJoCo's default, ≥ 2 × the 240 Hz step).
         solimp: MuJoCo's contact impedance (dmin, dmax, width, midpoint, power; its defaults).
         max_triangles: a mesh is simplified to at most this many triangles before convex
             decomposition (paper: 40K).
@@ -118,9 +102,8 @@ class PhysicsConfig:
             close; "on" / "off" force it.
         coacd_preprocess_resolution / coacd_resolution / coacd_seed: CoACD's own settings (its
             defaults; seeded).
-        coacd_mcts_nodes / coacd_mcts_iterations: CoACD's tree search (its defaults 20 / 150). Ours,
-            10 / 60, measured on the synthetic mug and bowl: 1.8× and 1.3× faster with hull volume
-            ratios 1.15 / 1.52 instead of 1.22 / 1.60.
+        coacd_mcts_nodes / coacd_mcts_iterations: CoACD's tree search, ours (10 / 60): faster with
+            tighter hulls than its defaults (physics_notes.md "CoACD tree search").
         min_volume: a mesh whose convex hull encloses less than this (m³) has zero volume and
             fails (a flat sheet cannot be a rigid body).
         workers: processes building the objects' collision in parallel (CoACD is single-threaded);
@@ -129,8 +112,7 @@ class PhysicsConfig:
             scene surface, plus a floor plane) or "plane" (one plane at the lowest support).
         support_thickness: thickness of a support box, below its top face.
         scene_solver_iterations / scene_line_search_iterations: the Newton solver's limits written
-            to ``scene.xml`` (several objects in contact converge more slowly than one body on a
-            plane, so the scene does not take the drop test's).
+            to ``scene.xml``, more than the drop test's (physics_notes.md "Scene solver limits").
         drop_test: the drop test's settings.
     """
 

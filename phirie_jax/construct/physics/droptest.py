@@ -5,11 +5,11 @@ orientation with its lowest collision point on the plane; 2 s with velocities ze
 every step, then 2 s free. Stable if its centre of mass ends < 3 cm from where it was spawned
 and no lower than −5 cm relative to the plane.
 
-Both backends simulate the same compiled MuJoCo models (``build_model``): a plane, one free
-body with an explicit inertial (our uniform-density mass properties) and its convex parts
-padded to the part bucket with ghost parts. "mujoco" steps each model with the C library,
-one after another (the reference); "mjx" runs a whole bucket as one vmapped program
-(``interact.mjx_batch``).
+Both backends simulate the same compiled MuJoCo models (``build_model``): a plane and the
+body added by ``body.add_body`` (the builder of ``scene.xml``'s bodies: explicit inertial, the
+priors' contact parameters), its convex parts inline and padded to the part bucket with ghost
+parts. "mujoco" steps each model with the C library, one after another (the reference);
+"mjx" runs a whole bucket as one vmapped program (``mjx_batch``).
 
 The construction stage's settling check calls ``drop_test_meshes`` (one convex hull per
 candidate, every candidate in one batch) and ``settling_check`` (a check-table row).
@@ -25,7 +25,8 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.construct.physics.collision import ConvexPart, MeshError, ghost_part, hull_part
+from phirie_jax.construct.physics.body import ObjectBody, add_body, object_body
+from phirie_jax.construct.physics.collision import ConvexPart, MeshError, hull_part
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
 from phirie_jax.construct.physics.priors import MassProperties, Priors, mass_properties, priors
 from phirie_jax.geometry import rotation_to_z, split_sim3
@@ -35,12 +36,23 @@ PLANE_HALF_SIZE = 5.0     # m; the plane is infinite for collisions, this is onl
 
 @dataclasses.dataclass(frozen=True)
 class DropBody:
-    """One body to drop: convex parts in its body frame and its spawn orientation."""
+    """One body to drop: the object's body and its spawn orientation."""
 
-    parts: tuple[ConvexPart, ...]   # body frame (canonical mesh frame, scale applied), metres
-    mass: MassProperties            # body frame
+    body: ObjectBody
     rotation: np.ndarray            # (3, 3) body → gravity frame (up = +z) at spawn
-    priors: Priors
+
+    @property
+    def parts(self) -> tuple[ConvexPart, ...]:
+        """Convex parts in the body frame (canonical mesh frame, scale applied), metres."""
+        return self.body.parts
+
+    @property
+    def mass(self) -> MassProperties:
+        return self.body.mass
+
+    @property
+    def priors(self) -> Priors:
+        return self.body.priors
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,10 +72,12 @@ class DropResult:
 def body_from_parts(parts: Sequence[ConvexPart], pose: np.ndarray, up=(0.0, 0.0, 1.0),
                     body_priors: Priors | None = None) -> DropBody:
     """A drop body from canonical-frame parts placed by a Sim(3) ``pose`` in a scene whose up is ``up``."""
-    body_priors = body_priors or priors(None)
-    scale, rot, _ = split_sim3(pose)
-    scaled = tuple(ConvexPart(scale * p.vertices, p.faces) for p in parts)
-    return DropBody(scaled, mass_properties(scaled, body_priors.mass), rotation_to_z(up) @ rot, body_priors)
+    return drop_body(object_body(None, parts, pose, body_priors or priors(None)), up)
+
+
+def drop_body(body: ObjectBody, up=(0.0, 0.0, 1.0)) -> DropBody:
+    """``body`` spawned in its pose's orientation in a scene whose up is ``up`` (3,)."""
+    return DropBody(body, rotation_to_z(up) @ split_sim3(body.pose)[1])
 
 
 def part_bucket(parts: int, config: DropTestConfig) -> int:
@@ -77,33 +91,23 @@ def build_model(body: DropBody, bucket: int, config: DropTestConfig) -> mujoco.M
     """The compiled drop-test model of ``body``: plane + one free body with ``bucket`` mesh parts."""
     spec = mujoco.MjSpec()
     spec.modelname = "phirie_droptest"
-    opt = spec.option
+    _set_options(spec.option, config)
+    # the body's priors govern its contact with the plane: MuJoCo takes the larger friction of a
+    # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
+    spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
+                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
+    add_body(spec, body.body, name="body", placed=False, inline=True, pad_to=bucket)
+    return spec.compile()
+
+
+def _set_options(opt, config: DropTestConfig) -> None:
+    """The drop test's step and solver settings on a spec's ``option``."""
     opt.timestep = config.timestep
     opt.iterations = config.solver_iterations
     opt.ls_iterations = config.line_search_iterations
     opt.tolerance = config.tolerance
     opt.solver = mujoco.mjtSolver.mjSOL_CG if config.solver == "cg" else mujoco.mjtSolver.mjSOL_NEWTON
     opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE if config.jacobian == "sparse" else mujoco.mjtJacobian.mjJAC_DENSE
-    # the body's priors govern its contact with the plane: MuJoCo takes the larger friction of a
-    # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
-    spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
-                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
-    b = spec.worldbody.add_body(name="body")
-    b.add_freejoint()
-    m = body.mass
-    b.explicitinertial = True
-    b.mass = m.mass
-    b.ipos = m.com
-    i = m.inertia
-    b.fullinertia = [i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]
-    pr = body.priors
-    parts = list(body.parts) + [ghost_part(body.parts[0])] * (bucket - len(body.parts))
-    for k, part in enumerate(parts):
-        mesh = spec.add_mesh(name=f"part_{k}")
-        mesh.uservert = part.vertices.ravel()
-        b.add_geom(name=f"part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"part_{k}",
-                   friction=[pr.friction, 0.005, 0.0001], solref=list(pr.solref), solimp=list(pr.solimp))
-    return spec.compile()
 
 
 def spawn_qpos(body: DropBody) -> np.ndarray:
@@ -120,7 +124,7 @@ def bucket_template(bucket: int, config: DropTestConfig):
     from mujoco import mjx
 
     cube = hull_part(np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * 0.1)
-    canonical = DropBody((cube,), mass_properties((cube,), 1.0), np.eye(3), priors(None))
+    canonical = DropBody(ObjectBody(None, (cube,), np.eye(4), mass_properties((cube,), 1.0), priors(None)), np.eye(3))
     model = build_model(canonical, bucket, config)
     mx = mjx.put_model(model)
     return model, (mx, mjx.make_data(mx))

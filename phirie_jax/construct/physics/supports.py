@@ -18,7 +18,6 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.construct.physics.export import BackgroundGeom
 from phirie_jax.geometry import rotation_to_z
 
 HEIGHT_MERGE = 0.01        # supports closer than this in height are one support, m
@@ -28,6 +27,22 @@ CELL = 0.02                # footprint grid cell, m
 FALLBACK_MARGIN = 0.1      # footprint box grown by this without surface evidence, m
 PLANE_DRAW_HALF = 5.0      # drawn half extent of the plane (it is infinite for collisions)
 FLOOR_MIN_AREA = 0.1       # m² of up-facing surface within one 1 cm height bin to be a floor
+
+
+@dataclasses.dataclass(frozen=True)
+class BackgroundGeom:
+    """One support geom of ``scene.xml`` (the manifest's ``physics.background`` rows)."""
+
+    name: str
+    type: str                      # "plane" or "box"
+    pos: np.ndarray                # (3,) scene frame
+    quat: np.ndarray               # (4,) wxyz, scene frame
+    size: np.ndarray               # (3,) MuJoCo half sizes (plane: drawn half extent, spacing)
+    source: str                    # the evidence it was fitted from, for people
+
+    def record(self) -> dict:
+        return {"name": self.name, "type": self.type, "pos": self.pos, "quat": self.quat, "size": self.size,
+                "source": self.source}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,7 +12,8 @@ import pytest
 import trimesh
 
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
-from phirie_jax.construct.physics.export import read_part, settle_scene
+from phirie_jax.construct.physics.mjcf import settle_scene
+from phirie_jax.construct.physics.parts import read_part
 from phirie_jax.construct.physics.stage import run_droptest, run_physics
 from phirie_jax.errors import SceneInputError
 from tests.construct.physics.test_collision import fin_mesh
