@@ -126,14 +126,17 @@ class Manifest:
         up = ((self.data.get("observe") or {}).get("auto") or {}).get("up")
         return None if up is None else np.asarray(up, np.float64)
 
-    def scene_surface(self) -> Path | None:
-        """The scene surface the stages work on: the object stage's choice, else the observation
-        stage's (scan mesh or splat-derived), as a path to open; None when there is none."""
-        for path in ((self.data.get("construct") or {}).get("surface"),
-                     ((self.data.get("observe") or {}).get("surface") or {}).get("path")):
-            if path:
-                return resolve(self.out_dir, path)
-        return None
+    def observed_surface(self) -> Path | None:
+        """The surface the observation stage lifted onto (scan mesh or splat-derived), as a path
+        to open; None when it recorded none."""
+        path = ((self.data.get("observe") or {}).get("surface") or {}).get("path")
+        return resolve(self.out_dir, path) if path else None
+
+    def surface_paths(self) -> list[str]:
+        """The scene surfaces earlier stages recorded, as written (the object stage's choice first,
+        then the observation stage's)."""
+        return [p for p in ((self.data.get("construct") or {}).get("surface"),
+                            ((self.data.get("observe") or {}).get("surface") or {}).get("path")) if p]
 
     def support_heights(self) -> dict[int, float]:
         """Object id → height of the support it stands on (gravity frame), from the object stage."""

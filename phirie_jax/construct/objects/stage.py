@@ -65,7 +65,7 @@ def _raycaster(manifest: Manifest, scene: SceneInput):
     raycaster, and its path; (None, None) without one."""
     from phirie_jax.observe.raycast import Raycaster
 
-    for path in (manifest.scene_surface(), scene.surface_mesh):
+    for path in (manifest.observed_surface(), scene.surface_mesh):
         if path is not None and Path(path).is_file():
             try:
                 vertices, faces = read_mesh(path)

@@ -54,9 +54,9 @@ def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: Physi
     objects = manifest.require("objects", "the object-construction stage")
     with manifest.timed("physics"):
         with manifest.timed("physics.collision"):
-            build_accepted(objects, _categories(manifest), out_dir, config)
+            build_accepted(objects, manifest.categories(), out_dir, config)
         with manifest.timed("physics.export"):
-            section = export_scene(objects, _up(manifest), _surface(manifest, out_dir), out_dir, config)
+            section = export_scene(objects, manifest.up(), _surface(manifest, out_dir), out_dir, config)
         manifest.set("objects", objects)
         with manifest.timed("physics.droptest"):
             run_droptest(out_dir, config, manifest)
@@ -73,7 +73,7 @@ def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manif
     manifest = manifest or Manifest.load_or_create(out_dir)
     objects = manifest.require("objects", "the object and physics stages")
     with manifest.timed("droptest"):
-        entries, bodies = exported_bodies(objects, out_dir, _up(manifest), config)
+        entries, bodies = exported_bodies(objects, out_dir, manifest.up(), config)
         record_verdicts(entries, dt.drop_test(bodies, config.drop_test), config)
         manifest.set("objects", objects)
     manifest.write()
@@ -231,15 +231,6 @@ def exported_body(entry: dict, out_dir: Path) -> ObjectBody:
     return object_body(entry["id"], parts, np.asarray(entry["pose"]), pr, entry["collision"])
 
 
-def _up(manifest: Manifest) -> np.ndarray:
-    up = ((manifest.get("construct") or {}).get("gravity") or {}).get("up")
-    return np.asarray(up if up is not None else (0.0, 0.0, 1.0), np.float64)
-
-
-def _categories(manifest: Manifest) -> dict:
-    return {inst["id"]: inst.get("category") for inst in manifest.get("instances") or []}
-
-
 def _load_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(vertices (V, 3), faces (F, 3)) of an object's mesh; a missing or unreadable file is a
     ``MeshError`` (that object fails, not the stage)."""
@@ -255,9 +246,7 @@ def _fail(entry: dict, reason: str, **extra) -> None:
 
 def _surface(manifest: Manifest, out_dir: Path):
     """The scene surface the earlier stages used (trimesh), or None."""
-    candidates = [(manifest.get("construct") or {}).get("surface"),
-                  ((manifest.get("observe") or {}).get("surface") or {}).get("path")]
-    for p in candidates:
+    for p in manifest.surface_paths():
         if p and layout.resolve(out_dir, p).is_file():
             try:
                 mesh = load_trimesh(layout.resolve(out_dir, p))
