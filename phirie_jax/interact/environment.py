@@ -26,15 +26,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from kernels.gaussians import Gaussians, Sim3, concatenate, transform_bodies
+from phirie_jax import layout
 from phirie_jax.construct.physics.body import body_name
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.transforms_json import read_transforms_json
 from phirie_jax.types import Camera, GaussianSplatData
 
-SCENE_FILE = "scene.xml"
-BACKGROUND_FILE = "background.ply"
-CAMERAS_FILE = "transforms.json"
 PUSHER = "pusher"
 PUSHER_HALF_SIZE = (0.02, 0.05, 0.03)  # a paddle: thin along the push direction
 
@@ -74,7 +72,7 @@ def load_spec(out_dir: Path, with_pusher: bool = False):
     """The ``scene.xml`` of a converted folder as a ``mujoco.MjSpec`` (plus the pusher body)."""
     import mujoco
 
-    path = out_dir / SCENE_FILE
+    path = out_dir / layout.SCENE_MJCF
     if not path.is_file():
         raise SceneInputError(path, None, "missing (expected the physics stage's MJCF scene; "
                                           "run `phirie convert` first)")
@@ -93,11 +91,11 @@ def _load_model(out_dir: Path, with_pusher: bool):
     try:
         return spec.compile()
     except Exception as err:  # noqa: BLE001
-        raise SceneInputError(out_dir / SCENE_FILE, None, f"MuJoCo cannot load it: {err}") from None
+        raise SceneInputError(out_dir / layout.SCENE_MJCF, None, f"MuJoCo cannot load it: {err}") from None
 
 
 def load_cameras(out_dir: Path) -> list[Camera]:
-    path = out_dir / CAMERAS_FILE
+    path = out_dir / layout.CAMERAS
     return read_transforms_json(path) if path.is_file() else []
 
 
@@ -119,7 +117,7 @@ class Environment:
             name = body_name(object_id)
             body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
             if body_id < 0:
-                raise SceneInputError(self.out_dir / SCENE_FILE, f"body '{name}'",
+                raise SceneInputError(self.out_dir / layout.SCENE_MJCF, f"body '{name}'",
                                       "missing (expected one free body per accepted object)")
             self.objects.append(SceneObject(object_id, name, body_id, np.asarray(pose0, np.float64),
                                             slice(start, start + splats.num)))
@@ -145,9 +143,9 @@ class Environment:
             raise SceneInputError(manifest_path, None, "missing (expected a `phirie convert` output folder)")
         manifest = json.loads(manifest_path.read_text())
         model = _load_model(out_dir, with_pusher)
-        if not (out_dir / BACKGROUND_FILE).is_file():
-            raise SceneInputError(out_dir / BACKGROUND_FILE, None, "missing (expected the background stage's PLY)")
-        background = read_gaussian_ply(out_dir / BACKGROUND_FILE)
+        if not (out_dir / layout.BACKGROUND).is_file():
+            raise SceneInputError(out_dir / layout.BACKGROUND, None, "missing (expected the background stage's PLY)")
+        background = read_gaussian_ply(out_dir / layout.BACKGROUND)
         objects = []
         for obj in manifest.get("objects", []):
             if obj.get("status") != "accepted" or not obj.get("visual") or not obj.get("collision"):
@@ -211,7 +209,7 @@ class Environment:
         if isinstance(camera, Camera):
             return camera
         if not 0 <= camera < len(self.cameras):
-            raise SceneInputError(self.out_dir / CAMERAS_FILE, "camera",
+            raise SceneInputError(self.out_dir / layout.CAMERAS, "camera",
                                   f"{camera} (expected 0..{len(self.cameras) - 1})")
         return self.cameras[camera]
 

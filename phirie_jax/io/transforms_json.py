@@ -15,6 +15,7 @@ absolute ``file_path`` is named by its file name).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -149,60 +150,82 @@ def _number(value, path: Path, field: str) -> float:
     return float(value)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Fields:
+    """One frame's camera fields: its own value of a key wins over the top level's."""
+
+    path: Path
+    where: str
+    frame: dict
+    meta: dict
+
+    def get(self, key: str):
+        """(value or None, field name for messages)."""
+        if key in self.frame:
+            return self.frame[key], f"{self.where}: {key}"
+        return self.meta.get(key), key
+
+    def number(self, key: str, default: float) -> float:
+        value, field = self.get(key)
+        return default if value is None else _number(value, self.path, field)
+
+
 def _intrinsics(path: Path, where: str, frame: dict, meta: dict, image_path: Path):
     """(K (3, 3), width, height, model, distortion (D,)) of one frame."""
-
-    def get(key: str):
-        """(value or None, field name for messages); the frame's value wins."""
-        if key in frame:
-            return frame[key], f"{where}: {key}"
-        return meta.get(key), key
-
-    size = []
-    for key in ("w", "h"):
-        value, field = get(key)
-        if value is None:
-            if not image_path.is_file():
-                raise SceneInputError(path, field, f"missing (expected w and h, or the image {image_path} "
-                                      "to read the size from)")
-            value = image_size(image_path)[len(size)]
-        number = _number(value, path, field)
-        if number <= 0 or number != int(number):
-            raise SceneInputError(path, field, f"{value!r} (expected a positive whole number of pixels)")
-        size.append(int(number))
-    width, height = size
-
-    def focal(axis: str, pixels: int) -> float | None:
-        for source in (frame, meta):  # a frame's own value, in either form, beats the top level
-            if f"fl_{axis}" in source:
-                return _number(source[f"fl_{axis}"], path, get(f"fl_{axis}")[1])
-            if f"camera_angle_{axis}" in source:
-                field = get(f"camera_angle_{axis}")[1]
-                angle = _number(source[f"camera_angle_{axis}"], path, field)
-                if not 0 < angle < math.pi:
-                    raise SceneInputError(path, field, f"{angle} (expected a field of view in radians, 0..pi)")
-                return 0.5 * pixels / math.tan(0.5 * angle)
-        return None
-
-    fx = focal("x", width)
+    fields = _Fields(path, where, frame, meta)
+    width, height = _image_size(fields, image_path)
+    fx = _focal(fields, "x", width)
     if fx is None:
         raise SceneInputError(
             path, f"{where}: fl_x", "missing (expected fl_x or camera_angle_x, here or at the top level)"
         )
-    fy = focal("y", height)
+    fy = _focal(fields, "y", height)
     fy = fx if fy is None else fy  # square pixels unless told otherwise
     if fx <= 0 or fy <= 0:
         raise SceneInputError(path, f"{where}: fl_x", f"focal lengths {fx}, {fy} (expected positive)")
-    (cx, cx_field), (cy, cy_field) = get("cx"), get("cy")
-    cx = width / 2 if cx is None else _number(cx, path, cx_field)  # instant-ngp / Blender default
-    cy = height / 2 if cy is None else _number(cy, path, cy_field)
+    cx = fields.number("cx", width / 2)  # instant-ngp / Blender default
+    cy = fields.number("cy", height / 2)
+    model, distortion = _lens(fields)
+    return intrinsics_matrix(fx, fy, cx, cy), width, height, model, distortion
 
-    coeffs = {}
-    for key in _DISTORTION_KEYS:
-        value, field = get(key)
-        coeffs[key] = 0.0 if value is None else _number(value, path, field)
-    model, field = get("camera_model")
-    fisheye, _ = get("is_fisheye")
+
+def _image_size(fields: _Fields, image_path: Path) -> tuple[int, int]:
+    """(width, height): ``w``/``h``, else read from the image."""
+    size = []
+    for key in ("w", "h"):
+        value, field = fields.get(key)
+        if value is None:
+            if not image_path.is_file():
+                raise SceneInputError(fields.path, field, f"missing (expected w and h, or the image {image_path} "
+                                      "to read the size from)")
+            value = image_size(image_path)[len(size)]
+        number = _number(value, fields.path, field)
+        if number <= 0 or number != int(number):
+            raise SceneInputError(fields.path, field, f"{value!r} (expected a positive whole number of pixels)")
+        size.append(int(number))
+    return size[0], size[1]
+
+
+def _focal(fields: _Fields, axis: str, pixels: int) -> float | None:
+    """Focal length in pixels along ``axis`` from ``fl_<axis>`` or ``camera_angle_<axis>``; None if neither."""
+    for source in (fields.frame, fields.meta):  # a frame's own value, in either form, beats the top level
+        if f"fl_{axis}" in source:
+            return _number(source[f"fl_{axis}"], fields.path, fields.get(f"fl_{axis}")[1])
+        if f"camera_angle_{axis}" in source:
+            field = fields.get(f"camera_angle_{axis}")[1]
+            angle = _number(source[f"camera_angle_{axis}"], fields.path, field)
+            if not 0 < angle < math.pi:
+                raise SceneInputError(fields.path, field, f"{angle} (expected a field of view in radians, 0..pi)")
+            return 0.5 * pixels / math.tan(0.5 * angle)
+    return None
+
+
+def _lens(fields: _Fields) -> tuple[str, np.ndarray]:
+    """(camera model, OpenCV distortion (D,)) from ``camera_model``, ``is_fisheye`` and k1..p2."""
+    path = fields.path
+    coeffs = {key: fields.number(key, 0.0) for key in _DISTORTION_KEYS}
+    model, field = fields.get("camera_model")
+    fisheye, _ = fields.get("is_fisheye")
     if fisheye is True or (model is not None and model not in SUPPORTED_MODELS):
         raise SceneInputError(
             path, field, f"unsupported camera model {model if model is not None else 'fisheye'} "
@@ -213,14 +236,12 @@ def _intrinsics(path: Path, where: str, frame: dict, meta: dict, image_path: Pat
         raise SceneInputError(path, field, f"{model} with nonzero distortion {coeffs} (expected OPENCV)")
     if model is None:
         model = "OPENCV" if distorted else "PINHOLE"
+    distortion = []
     if model == "OPENCV":
         if coeffs["k4"] != 0.0:
-            raise SceneInputError(path, get("k4")[1], f"{coeffs['k4']} (OPENCV has no k4; expected 0)")
+            raise SceneInputError(path, fields.get("k4")[1], f"{coeffs['k4']} (OPENCV has no k4; expected 0)")
         distortion = [coeffs[k] for k in ("k1", "k2", "p1", "p2")] + ([coeffs["k3"]] if coeffs["k3"] else [])
-    else:
-        distortion = []
-    K = intrinsics_matrix(fx, fy, cx, cy)
-    return K, width, height, model, np.asarray(distortion, dtype=np.float64)
+    return model, np.asarray(distortion, dtype=np.float64)
 
 
 def _world_to_camera(path: Path, where: str, matrix) -> np.ndarray:

@@ -175,34 +175,40 @@ def surface_nets(blocks: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, voxel
     vertex_of = np.full(len(keys), -1, np.int64)
     vertex_of[np.flatnonzero(cell)] = np.arange(cell.sum())
 
-    quads = []
-    for axis in range(3):
-        step = np.eye(3, dtype=np.int64)[axis]
-        j, found = lookup(coords + step)
-        change = found & ((values < 0) != (values[j] < 0))
-        base = coords[change]
-        a1, a2 = [np.eye(3, dtype=np.int64)[k] for k in range(3) if k != axis]
-        ring = [base, base - a1, base - a1 - a2, base - a2]
-        ids = []
-        ok = np.ones(len(base), bool)
-        for corner in ring:
-            i, f = lookup(corner)
-            v = np.where(f, vertex_of[i], -1)
-            ok &= v >= 0
-            ids.append(v)
-        quad = np.stack(ids, 1)[ok]
-        outward = np.where(values[change][ok] < 0, 1.0, -1.0)[:, None] * step[None]  # negative → positive
-        p = vertices[quad]
-        normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
-        flip = np.sum(normal * outward, axis=1) < 0
-        quad[flip] = quad[flip][:, ::-1]
-        quads.append(quad)
+    quads = [_axis_quads(axis, coords, values, vertices, vertex_of, lookup) for axis in range(3)]
     quad = np.concatenate(quads) if quads else np.zeros((0, 4), np.int64)
     faces = np.concatenate([quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]])
     used = np.unique(faces)
     remap = np.full(len(vertices), -1, np.int64)
     remap[used] = np.arange(len(used))
     return vertices[used], remap[faces]
+
+
+def _axis_quads(axis: int, coords: np.ndarray, values: np.ndarray, vertices: np.ndarray, vertex_of: np.ndarray,
+                lookup) -> np.ndarray:
+    """(Q, 4) vertex ids of the quads around the voxel edges along ``axis`` whose TSDF changes sign,
+    each turned so its normal points from negative to positive. ``coords`` (N, 3) and ``values``
+    (N,) are the sorted voxels, ``vertex_of`` (N,) each cell's vertex (−1: none), ``lookup(c)`` →
+    (index, found) of (M, 3) voxel coordinates."""
+    step = np.eye(3, dtype=np.int64)[axis]
+    j, found = lookup(coords + step)
+    change = found & ((values < 0) != (values[j] < 0))
+    base = coords[change]
+    a1, a2 = [np.eye(3, dtype=np.int64)[k] for k in range(3) if k != axis]
+    ids = []
+    ok = np.ones(len(base), bool)
+    for corner in (base, base - a1, base - a1 - a2, base - a2):
+        i, f = lookup(corner)
+        v = np.where(f, vertex_of[i], -1)
+        ok &= v >= 0
+        ids.append(v)
+    quad = np.stack(ids, 1)[ok]
+    outward = np.where(values[change][ok] < 0, 1.0, -1.0)[:, None] * step[None]  # negative → positive
+    p = vertices[quad]
+    normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+    flip = np.sum(normal * outward, axis=1) < 0
+    quad[flip] = quad[flip][:, ::-1]
+    return quad
 
 
 def fuse_open3d(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig):

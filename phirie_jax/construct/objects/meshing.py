@@ -75,18 +75,25 @@ def occupancy_mesh(occupied: np.ndarray, origin: np.ndarray, voxel: float, smoot
     vertices = coords[:, 0] + t[:, None] * (coords[:, 1] - coords[:, 0])
     vertices = (vertices - 2) * voxel + np.asarray(origin, np.float64)
 
-    # orient every triangle away from its tetrahedron's inside corners
+    faces = _outward(vertices, faces, tet_ids[np.concatenate([one, three, two, two])],
+                     tet_in[np.concatenate([one, three, two, two])], field.shape)
+    degenerate = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
+    return vertices, faces[~degenerate]
+
+
+def _outward(vertices: np.ndarray, faces: np.ndarray, tets: np.ndarray, tet_in: np.ndarray,
+             shape: tuple[int, ...]) -> np.ndarray:
+    """``faces`` (F, 3) turned to face away from the inside corners of the tetrahedron each came
+    from (``tets`` (F, 4) flat grid ids of a grid of ``shape``, ``tet_in`` (F, 4) which are inside)."""
     p = vertices[faces]
     normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    tet_of = np.concatenate([one, three, two, two])
-    cells = np.stack(np.unravel_index(tet_ids[tet_of], field.shape), -1).astype(np.float64)
-    w = tet_in[tet_of][..., None]
+    cells = np.stack(np.unravel_index(tets, shape), -1).astype(np.float64)
+    w = tet_in[..., None]
     inner = (cells * w).sum(1) / w.sum(1)
     outer = (cells * ~w).sum(1) / (~w).sum(1)
     flip = np.sum(normal * (outer - inner), axis=1) < 0
     faces[flip] = faces[flip][:, ::-1]
-    degenerate = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
-    return vertices, faces[~degenerate]
+    return faces
 
 
 def largest_component(occupied: np.ndarray) -> np.ndarray:
