@@ -177,9 +177,8 @@ def export_scene(objects: list[dict], up: np.ndarray, surface, out_dir: Path, co
 
 def _placed(body: ObjectBody, entry: dict) -> PlacedBody:
     """The body's collision vertices placed in the scene, with its support height when known."""
-    scale, rot, trans = split_sim3(body.pose)
-    # TODO: body.parts already carry the pose's scale, so a scale ≠ 1 is applied twice here
-    pts = np.concatenate([(scale * p.vertices) @ rot.T + trans for p in body.parts])
+    _, rot, trans = split_sim3(body.pose)  # the parts already carry the pose's scale
+    pts = np.concatenate([p.vertices @ rot.T + trans for p in body.parts])
     support = (entry.get("support") or {}).get("height")
     return PlacedBody(entry["id"], pts, None if support is None else float(support))
 

@@ -221,3 +221,18 @@ def test_parallel_and_in_process_builds_write_the_same_parts(physics, tmp_path):
         assert outcome["update"]["collision"] == parallel["collision"]
         for path in parallel["collision"]:
             assert (alone / path).read_bytes() == (out / path).read_bytes()
+
+
+def test_a_scaled_pose_places_the_collision_parts_at_their_scaled_size():
+    """The supports are fitted around the parts as they stand in the scene: a pose of scale 2
+    doubles the canonical box once (the body's parts already carry the scale)."""
+    from phirie_jax.construct.physics.body import object_body
+    from phirie_jax.construct.physics.collision import hull_part
+    from phirie_jax.construct.physics.priors import priors
+    from phirie_jax.construct.physics.stage import _placed
+    from phirie_jax.geometry import sim3_matrix
+
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    pose = sim3_matrix(2.0, np.eye(3), [0.0, 0.0, 0.1])
+    placed = _placed(object_body(7, [hull_part(np.asarray(box.vertices), 64)], pose, priors(None)), {"id": 7})
+    np.testing.assert_allclose(placed.points.max(0) - placed.points.min(0), [0.2, 0.2, 0.2], atol=1e-9)
