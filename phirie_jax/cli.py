@@ -220,11 +220,13 @@ def _print_objects(manifest: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from phirie_jax.construct.objects.checks import failed as failed_checks
+
     table = Table(title="objects")
     for column in ("id", "status", "candidate", "failed checks", "drop test", "reason"):
         table.add_column(column)
     for obj in manifest.get("objects", []):
-        failed = [name for name, row in (obj.get("checks") or {}).items() if row.get("passed") is False]
+        failed = failed_checks(obj.get("checks") or {})
         drop = obj.get("drop_test") or {}
         drift = drop.get("drift_m")
         verdict = "—" if not drop else ("stable" if drop.get("stable") else "unstable") + (

@@ -129,6 +129,8 @@ def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: 
     """What was converted, how well (against the synthetic truth) and how long it took."""
     from rich.table import Table
 
+    from phirie_jax.construct.objects.checks import failed as failed_checks
+
     table = Table(title=f"phirie demo → {out}")
     table.add_column("what")
     table.add_column("value")
@@ -139,7 +141,7 @@ def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: 
     errors = placement_errors(manifest, scene_dir)
     for obj in manifest.get("objects", []):
         drop = obj.get("drop_test") or {}
-        failed = [k for k, v in (obj.get("checks") or {}).items() if v.get("passed") is False]
+        failed = failed_checks(obj.get("checks") or {})
         cand = obj.get("candidate")
         name = cand.get("name") if isinstance(cand, dict) else cand
         table.add_row(f"object {obj['id']}", f"{obj.get('status')} · candidate {name} · placed "
