@@ -8,32 +8,30 @@ from __future__ import annotations
 
 import dataclasses
 
+from kernels.registration import SearchSpec
+
+# The search fields the object stage sets for each call: which axes (own up first, or all six for a
+# batched retry), how many hypotheses go through one vmap, and whether to snap to the support.
+PER_CALL_SEARCH_FIELDS = ("axes", "hypothesis_batch", "snap_to_support")
+
 
 @dataclasses.dataclass(frozen=True)
 class RegistrationConfig:
     """Batched Sim(3) registration of a candidate shape to an instance's observed points Q_i.
 
     Attributes:
-        points: points sampled on the candidate mesh, P (paper: 20K). Every candidate has
-            exactly this many, so it is one static shape.
-        num_yaws: yaws per up axis (paper: 36, i.e. 10° steps).
+        search: the kernel's static search (``kernels.registration.SearchSpec``): P's size
+            (``model_points``, paper: 20K), yaws per up axis (paper: 36, i.e. 10° steps), and ours —
+            scale multipliers, the refined axes and hypotheses, the point subsets of the sweep, ICP
+            and scores, iteration counts, ``rotation`` ("full" or "yaw") and the nearest-neighbour
+            ``chunk``. Its ``axes``, ``hypothesis_batch`` and ``snap_to_support`` are set for each
+            search by the object stage (``retry``, ``batched_retry``, ``snap_to_support``, and
+            ``hypothesis_batch`` here) and must stay at their defaults. On the development scene
+            the true axis had the lowest sweep score of all six in 24/24 random frames, so
+            ``refine_other_axes`` 2 keeps a margin at less than half the work of refining all
+            five; subset sizes are measured in ``experiments/bench_register.py``.
         tau: clip distance of E_i(S) and of the observation-support check (paper: 3 cm).
-        scale_multipliers: ours — multipliers of the robust-extent scale init tried in the sweep.
-        top_k: ours — best sweep hypotheses per refined up axis (ICP, then scale).
-        refine_other_axes: ours — besides the candidate's own up (+z), the refinement runs on the
-            axes with the lowest sweep score, this many of them. On the development scene the
-            true axis had the lowest sweep score of all six in 24/24 random frames; 2 keeps a
-            margin and halves the refinement work of refining all six (5).
-        sweep_model_points / sweep_obs_points: ours — the sweep scores every hypothesis on these
-            many leading (random) points of P and Q; refined hypotheses are rescored on all of
-            them. Measured in ``experiments/bench_register.py``.
-        icp_model_points / icp_obs_points: ours — points matched in ICP and scale refinement.
-        score_obs_points: ours — at most this many points of Q in the final scores (a random
-            subset; the mean of clipped distances moves by well under 0.1 mm beyond it).
-        icp_iterations / scale_iterations: ours — fixed iteration counts.
         icp_max_correspondence: ours — ICP ignores matches farther than this (2τ).
-        rotation: ours — "full" (3D Kabsch) or "yaw" (rotation about up only) in ICP.
-        chunk: queries per brute-force nearest-neighbour block (static).
         hypothesis_batch: hypotheses vmapped together (static; memory ∝ batch · chunk · points).
             None: 36 on a CPU, all of them on a GPU (measured: the whole search takes 7 ms on an
             H100 with all 648 together).
@@ -47,34 +45,31 @@ class RegistrationConfig:
         seed: sampling seed (P on the mesh, subsets of Q).
     """
 
-    points: int = 20_000
-    num_yaws: int = 36
+    search: SearchSpec = SearchSpec()
     tau: float = 0.03
-    scale_multipliers: tuple[float, ...] = (0.85, 1.0, 1.15)
-    top_k: int = 1
-    refine_other_axes: int = 2
-    sweep_model_points: int = 512
-    sweep_obs_points: int = 512
-    icp_model_points: int = 2048
-    icp_obs_points: int = 2048
-    score_obs_points: int = 4096
-    icp_iterations: int = 20
-    scale_iterations: int = 10
     icp_max_correspondence: float = 0.06
-    rotation: str = "full"
-    chunk: int = 256
     hypothesis_batch: int | None = None
     min_obs_bucket: int = 256
     batched_retry: bool = True
     seed: int = 0
 
     def __post_init__(self):
-        if self.rotation not in ("full", "yaw"):
-            raise ValueError(f"registration rotation {self.rotation!r} (expected 'full' or 'yaw')")
-        if min(self.sweep_model_points, self.icp_model_points) > self.points:
+        s = self.search
+        if s.rotation not in ("full", "yaw"):
+            raise ValueError(f"registration rotation {s.rotation!r} (expected 'full' or 'yaw')")
+        if min(s.sweep_model_points, s.icp_model_points) > s.model_points:
             raise ValueError("registration: sweep/ICP subsets cannot exceed the sampled points")
-        if self.num_yaws < 1 or self.top_k < 1 or not self.scale_multipliers:
+        if s.num_yaws < 1 or s.top_k < 1 or not s.scale_multipliers:
             raise ValueError("registration: need num_yaws ≥ 1, top_k ≥ 1 and a scale multiplier")
+        for name in PER_CALL_SEARCH_FIELDS:
+            if getattr(s, name) != getattr(SearchSpec(), name):
+                raise ValueError(f"registration.search.{name} is set for each search by the object stage "
+                                 "(use retry, batched_retry, snap_to_support or registration.hypothesis_batch)")
+
+    @property
+    def points(self) -> int:
+        """Points sampled on each candidate mesh (P): one static shape for every candidate."""
+        return self.search.model_points
 
 
 @dataclasses.dataclass(frozen=True)

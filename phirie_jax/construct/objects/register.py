@@ -113,18 +113,11 @@ CPU_HYPOTHESIS_BATCH = 36   # bounds memory on a CPU; a GPU takes every hypothes
 
 
 def search_spec(config: RegistrationConfig, axes: tuple[int, ...], snap: bool) -> SearchSpec:
+    """The configured search over ``axes``, with the hypothesis batch resolved for this backend."""
     batch = config.hypothesis_batch
     if batch is None:
-        batch = CPU_HYPOTHESIS_BATCH if jax.default_backend() == "cpu" else (
-            len(axes) * config.num_yaws * len(config.scale_multipliers))
-    return SearchSpec(axes=axes, num_yaws=config.num_yaws, scale_multipliers=tuple(config.scale_multipliers),
-                      top_k=config.top_k, refine_other_axes=config.refine_other_axes, model_points=config.points,
-                      sweep_model_points=config.sweep_model_points, sweep_obs_points=config.sweep_obs_points,
-                      icp_model_points=config.icp_model_points, icp_obs_points=config.icp_obs_points,
-                      score_obs_points=config.score_obs_points,
-                      icp_iterations=config.icp_iterations, scale_iterations=config.scale_iterations,
-                      rotation=config.rotation, chunk=config.chunk, hypothesis_batch=batch,
-                      snap_to_support=snap)
+        batch = CPU_HYPOTHESIS_BATCH if jax.default_backend() == "cpu" else len(axes) * config.search.hypotheses_per_axis
+    return dataclasses.replace(config.search, axes=tuple(axes), hypothesis_batch=batch, snap_to_support=snap)
 
 
 def _matrix(rotation, scale, translation) -> np.ndarray:
@@ -159,9 +152,9 @@ def score_placement(model: np.ndarray, obs: Observation, placement: np.ndarray,
                     config: RegistrationConfig) -> Hypothesis:
     """Score a known placement (canonical → gravity, rigid) on the full point sets."""
     rot, trans = placement[:3, :3], placement[:3, 3]
-    n = min(config.score_obs_points, len(obs.points))
+    n = min(config.search.score_obs_points, len(obs.points))
     energy, mq, qm, support, s0 = jax.device_get(_score_jit(
         jnp.asarray(model), jnp.asarray(obs.points[:n]), jnp.asarray(obs.mask[:n]), jnp.asarray(rot, jnp.float32),
-        jnp.float32(1.0), jnp.asarray(trans, jnp.float32), jnp.float32(config.tau), chunk=config.chunk))
+        jnp.float32(1.0), jnp.asarray(trans, jnp.float32), jnp.float32(config.tau), chunk=config.search.chunk))
     return Hypothesis("+z", 0.0, placement.copy(), 1.0, float(s0), float(energy), float(mq), float(qm),
                       float(support))

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from kernels.registration import SearchSpec
 from phirie_jax.construct.objects.assets import transform_splats
 from phirie_jax.construct.objects.config import ObjectsConfig, RegistrationConfig
 from phirie_jax.construct.objects.stage import run_objects
@@ -24,9 +25,9 @@ from tests.kernels.shapes import in_random_frame
 from tests.observe.helpers import tabletop_folder
 
 SETTLE = candidate_settler()
-FAST = ObjectsConfig(hull_resolution=32, registration=RegistrationConfig(
-    points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024, icp_obs_points=1024,
-    score_obs_points=1024, hypothesis_batch=108))
+FAST = ObjectsConfig(hull_resolution=32, registration=RegistrationConfig(search=SearchSpec(
+    model_points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024, icp_obs_points=1024,
+    score_obs_points=1024), hypothesis_batch=108))
 F1_MIN = 0.9
 TAU_F1 = 0.02
 MIN_PSNR_DB = 20.0  # asset vs captured Gaussians, on the object's pixels

@@ -3,9 +3,12 @@ and the lazy retry agree, and a real scanned mesh (YCB, y-up) is placed through 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from kernels.registration import SearchSpec
 from phirie_jax.construct.objects import register as reg
 from phirie_jax.construct.objects.candidates import Candidate
 from phirie_jax.construct.objects.config import ObjectsConfig, RegistrationConfig
@@ -14,8 +17,9 @@ from phirie_jax.manifest import Manifest
 from tests.conftest import shared_data
 from tests.kernels.shapes import in_random_frame, l_shape, partial_view
 
-SMALL = RegistrationConfig(points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024,
-                           icp_obs_points=1024, score_obs_points=1024, hypothesis_batch=108)
+SMALL = RegistrationConfig(search=SearchSpec(
+    model_points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024, icp_obs_points=1024,
+    score_obs_points=1024), hypothesis_batch=108)
 F1_MIN = 0.9
 
 
@@ -93,7 +97,7 @@ def test_batched_retry_takes_the_right_axis_in_one_call():
 def test_lazy_retry_and_no_retry_agree_with_the_batched_call():
     cand, obs, truth = _l_candidate_in_a_y_up_frame()
     batched = register_candidate(cand, obs, ObjectsConfig(registration=SMALL), Manifest("unused"))
-    lazy_cfg = ObjectsConfig(registration=RegistrationConfig(**{**SMALL.__dict__, "batched_retry": False}))
+    lazy_cfg = ObjectsConfig(registration=dataclasses.replace(SMALL, batched_retry=False))
     lazy = register_candidate(cand, obs, lazy_cfg, Manifest("unused"))
     assert lazy["kernel_calls"] == 2 and lazy["retry"]["used"] and lazy["scores"]["axis"] == "+y"
     np.testing.assert_allclose(batched["gravity_matrix"], lazy["gravity_matrix"], atol=1e-3)
@@ -125,3 +129,11 @@ def test_a_scanned_y_up_mesh_is_placed_through_the_retry():
     ref = reg.sample_model(world.vertices, world.faces, 5000, 1)
     f1, _, _ = f1_score(jnp.asarray(placed), jnp.ones(5000, bool), jnp.asarray(ref), jnp.ones(5000, bool), 0.02)
     assert float(f1) >= F1_MIN
+
+
+def test_the_search_is_the_kernels_spec_with_the_per_call_fields_set_by_the_stage():
+    spec = reg.search_spec(SMALL, (0,), snap=True)
+    assert spec == dataclasses.replace(SMALL.search, axes=(0,), hypothesis_batch=108, snap_to_support=True)
+    for field, value in (("axes", (0,)), ("snap_to_support", True), ("hypothesis_batch", 7)):
+        with pytest.raises(ValueError, match=f"registration.search.{field}"):
+            RegistrationConfig(search=SearchSpec(**{field: value}))

@@ -8,6 +8,7 @@ import json
 import mujoco
 import pytest
 
+from kernels.registration import SearchSpec
 from phirie_jax.construct.objects.config import ObjectsConfig, RegistrationConfig
 from phirie_jax.construct.objects.stage import run_objects
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
@@ -20,9 +21,9 @@ from tests.observe.helpers import tabletop_folder
 
 pytestmark = pytest.mark.slow
 
-FAST_OBJECTS = ObjectsConfig(hull_resolution=32, registration=RegistrationConfig(
-    points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024, icp_obs_points=1024,
-    score_obs_points=1024, hypothesis_batch=108))
+FAST_OBJECTS = ObjectsConfig(hull_resolution=32, registration=RegistrationConfig(search=SearchSpec(
+    model_points=4096, sweep_model_points=256, sweep_obs_points=256, icp_model_points=1024, icp_obs_points=1024,
+    score_obs_points=1024), hypothesis_batch=108))
 SETTLE_LIMIT = 0.03
 
 
