@@ -26,6 +26,7 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_text
+from phirie_jax.io.jsonfile import read_json_object
 from phirie_jax.layout import MANIFEST, resolve
 
 SCHEMA = "phirie/1"
@@ -73,12 +74,7 @@ class Manifest:
         path = Path(out_dir) / MANIFEST
         if not path.exists():
             return cls(out_dir)
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise SceneInputError(path, None, f"not valid JSON ({e})") from None
-        if not isinstance(data, dict):
-            raise SceneInputError(path, None, "expected a JSON object")
+        data = read_json_object(path)
         if data.get("schema") != SCHEMA:
             raise SceneInputError(path, "schema", f"{data.get('schema')!r} (expected {SCHEMA!r})")
         if not isinstance(data.setdefault("timings", {}), dict):

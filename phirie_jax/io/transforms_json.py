@@ -27,6 +27,7 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_files
 from phirie_jax.io.camera import RIGID_TOLERANCE, intrinsics_matrix, rigid, sort_by_name
 from phirie_jax.io.images import image_size
+from phirie_jax.io.jsonfile import read_json_object
 from phirie_jax.types import Camera
 
 SUPPORTED_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
@@ -46,7 +47,7 @@ def read_transforms_json(
     found on disk for Blender's extension-less paths).
     """
     path = Path(path)
-    meta = _load(path)
+    meta = read_json_object(path, "a JSON object with a 'frames' list")
     entries = []
     for key in ("frames", "test_frames"):
         frames = meta.get(key, [] if key == "test_frames" else None)
@@ -120,18 +121,6 @@ def write_transforms_json(path: str | Path, cameras: list[Camera], image_dir_nam
 
 
 # --- reading -----------------------------------------------------------------------------
-
-
-def _load(path: Path) -> dict:
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SceneInputError(path, None, "file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SceneInputError(path, None, f"not valid JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise SceneInputError(path, None, "expected a JSON object with a 'frames' list")
-    return meta
 
 
 def _path_parts(path: Path, where: str, frame: dict) -> tuple[str, ...]:
