@@ -9,6 +9,7 @@ body        ObjectBody (an object's rigid body), body_name, add_body: the one Mu
 supports    support geoms (floor plane, tabletop boxes) fitted from the scene surface
 mjcf        scene.xml: the scene as one MjSpec, written to text; a free settle of the scene
 urdf        objects/<id>/object.urdf from an ObjectBody
-droptest    the paper's drop-test protocol; MuJoCo C reference; the object stage's settling hook
+droptest    the paper's drop-test protocol; MuJoCo C reference
+settling    the object stage's settling check (candidate_settler), handed to it by the pipeline
 mjx_batch   every drop test of a bucket in one vmapped, jitted MJX program
 """
