@@ -15,7 +15,8 @@ from typing import Annotated, Literal
 import tyro
 
 from phirie_jax.construct.physics.config import PhysicsConfig
-from phirie_jax.errors import SceneInputError
+from phirie_jax.errors import OptionError, SceneInputError, StageError
+from phirie_jax.frame.config import FrameConfig
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.pipeline import ConvertConfig
 
@@ -145,9 +146,11 @@ def _print_timings(manifest: dict) -> None:
 
 
 def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
-            surface: Path | None = None, config: ObserveConfig = ObserveConfig()) -> None:
-    """Scene Observation alone: masks → first-hit lifting onto the surface → voxel association
-    into object instances (manifest.json `instances`, observe/instance_<id>.npz).
+            surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
+            config: ObserveConfig = ObserveConfig()) -> None:
+    """Scene Observation alone (after the frame: up and metres): masks → first-hit lifting onto
+    the surface → voxel association into object instances (manifest.json `instances`,
+    observe/instance_<id>.npz).
 
     Args:
         scene: a scene folder.
@@ -157,23 +160,25 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
             (+ <image stem>.json); default: files when the scene has them, else auto.
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: scene surface mesh to use instead of the one found (none: built from the splats).
+        frame: the capture's up and scale, when known (else estimated and recorded).
         config: observation parameters (defaults: the paper's numbers).
     """
-    from phirie_jax.io.scene import load_scene
-    from phirie_jax.observe.stage import run_observe
 
-    loaded = load_scene(scene, gaussians=gaussians, surface=surface)
-    manifest = run_observe(scene, out, config, masks=masks, scene=loaded)
+    manifest = _run_stages(scene, out, ConvertConfig(observe=config), masks, gaussians, surface, frame,
+                           ("observe",))
+    _print_frame(manifest)
     _print_instances(manifest)
+    _print_outcome(manifest)
     _print_timings(manifest)
 
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
-            surface: Path | None = None, config: ConvertConfig = ConvertConfig()) -> None:
-    """Scene → interactive scene: observe → objects → physics → background, each adding to
-    OUT/manifest.json (instances; objects with meshes, visual Gaussians, checks; collision,
-    scene.xml, URDFs, drop tests; background.ply with the objects removed and what they
-    uncover filled).
+            surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
+            config: ConvertConfig = ConvertConfig()) -> None:
+    """Scene → interactive scene: frame (metres, +z up) → observe → objects → physics →
+    background, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
+    Gaussians, checks; collision, scene.xml, URDFs, drop tests; background.ply with the objects
+    removed and what they uncover filled). Every output is in the metric, +z-up world frame.
 
     Args:
         scene: a scene folder.
@@ -181,20 +186,57 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         masks: mask source for observation: "files", "auto" or an external segmenter's folder.
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: scene surface mesh to use instead of the one found.
+        frame: the capture's up and scale, when known (else estimated and recorded).
         config: every stage's parameters (defaults: the paper's numbers).
     """
+    manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None)
+    _print_frame(manifest)
+    _print_instances(manifest)
+    _print_objects(manifest)
+    _print_background(manifest)
+    _print_outcome(manifest)
+    _print_timings(manifest)
+
+
+def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians, surface, frame: FrameConfig,
+                stages: tuple[str, ...] | None) -> dict:
+    """``run_convert`` with a spinner on a terminal, else one line per stage as it starts."""
+    import time
+
     from rich.console import Console
 
     from phirie_jax.pipeline import run_convert
 
     console = Console()
-    with console.status("converting") as status:
-        manifest = run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface,
-                               progress=lambda stage: status.update(f"converting: {stage}"))
-    _print_instances(manifest)
-    _print_objects(manifest)
-    _print_background(manifest)
-    _print_timings(manifest)
+    if console.is_terminal:
+        with console.status("converting") as status:
+            return run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface, frame=frame,
+                               stages=stages, progress=lambda stage: status.update(f"converting: {stage}"))
+    start = time.perf_counter()
+
+    def line(stage: str) -> None:
+        print(f"phirie: {stage} (at {time.perf_counter() - start:.0f} s)", flush=True)
+
+    manifest = run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface, frame=frame,
+                           stages=stages, progress=line)
+    print(f"phirie: done in {time.perf_counter() - start:.0f} s", flush=True)
+    return manifest
+
+
+def _print_frame(manifest: dict) -> None:
+    frame = manifest.get("frame") or {}
+    if frame:
+        print(f"frame: {frame['scale']:.6g} m per capture unit ({frame['scale_source']}, within ×/÷"
+              f"{frame['scale_uncertainty']:g}); up {[round(v, 4) for v in frame['capture_up']]} "
+              f"({frame['up_source']})")
+
+
+def _print_outcome(manifest: dict) -> None:
+    """What the run made, and why when it made nothing."""
+    from phirie_jax.info import outcome_lines
+
+    for text in outcome_lines(manifest):
+        print(text)
 
 
 def _print_background(manifest: dict) -> None:
@@ -306,9 +348,12 @@ def main(argv: list[str] | None = None) -> int:
             COMMANDS, prog="phirie", args=argv,
             description="Turn a 3D Gaussian Splatting capture into an interactive simulation scene.",
         )
-    except SceneInputError as err:
+    except (SceneInputError, OptionError) as err:
         print(f"phirie: error: {err}", file=sys.stderr)
         return 2
+    except StageError as err:
+        print(f"phirie: error: {err} (recorded in the output folder's manifest.json)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("phirie: interrupted", file=sys.stderr)
         return 130

@@ -82,3 +82,34 @@ def scene_facts(scene: SceneInput) -> dict:
     bounds = scene.bounds()
     facts["bounds"] = None if bounds is None else [[round(float(v), 4) for v in row] for row in bounds]
     return facts
+
+
+def _reasons(entries: list[dict]) -> str:
+    counts = Counter(str(e.get("reason") or "no reason recorded") for e in entries)
+    return "; ".join(f"{reason} (×{n})" if n > 1 else reason for reason, n in counts.most_common(4))
+
+
+def outcome_lines(manifest: dict) -> list[str]:
+    """What a conversion made, and why when it made nothing (the CLI prints these lines)."""
+    lines = []
+    failed = manifest.get("failed_stage")
+    if failed:
+        lines.append(f"stage {failed['stage']} failed: {failed['error']}")
+    observe = manifest.get("observe") or {}
+    if "instances" in manifest and not manifest["instances"]:
+        clusters = (observe.get("auto") or {}).get("rejected_clusters") or []
+        views = (observe.get("masks") or {}).get("failed_views") or []
+        why = [text for text in (_reasons(clusters) if clusters else "",
+                                 f"proposals rejected: {_reasons(observe['rejected_proposals'])}"
+                                 if observe.get("rejected_proposals") else "",
+                                 f"{len(views)} views gave no masks: {_reasons(views)}" if views else "") if text]
+        lines.append("no object instance found: " + ("; ".join(why) or "no mask labels any pixel"))
+    objects = manifest.get("objects")
+    if objects:
+        accepted = [o for o in objects if o.get("status") == "accepted"]
+        if accepted:
+            lines.append(f"{len(accepted)} of {len(objects)} objects accepted")
+        else:
+            lines.append("no object accepted: " + "; ".join(f"{o['id']}: {o.get('reason') or o.get('status')}"
+                                                          for o in objects))
+    return lines

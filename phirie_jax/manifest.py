@@ -117,10 +117,10 @@ class Manifest:
         up = frame.get("up")
         return np.asarray(up if up is not None else (0.0, 0.0, 1.0), np.float64)
 
-    def observed_up(self) -> np.ndarray | None:
-        """(3,) the observation stage's own up estimate (automatic masks), when it made one."""
-        up = ((self.data.get("observe") or {}).get("auto") or {}).get("up")
-        return None if up is None else np.asarray(up, np.float64)
+    def capture_to_world(self) -> np.ndarray | None:
+        """(4, 4) the Sim(3) from the capture's frame to the scene's (``frame``), when recorded."""
+        matrix = (self.data.get("frame") or {}).get("capture_to_world")
+        return None if matrix is None else np.asarray(matrix, np.float64)
 
     def observed_surface(self) -> Path | None:
         """The surface the observation stage lifted onto (scan mesh or splat-derived), as a path

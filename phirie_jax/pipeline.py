@@ -1,22 +1,31 @@
 """The whole conversion: scene folder → interactive scene folder.
 
 Stages run in order, each reading and extending ``OUT/manifest.json``:
-observe (instances) → objects (assets) → physics (collision, MJCF/URDF, drop tests) →
-background (removal, inpainting targets, fill). The capture's cameras are written beside
-the results (``transforms.json``) so the output folder is self-contained.
+frame (up and metres: the capture moved into a metric, +z-up world) → observe (instances)
+→ objects (assets) → physics (collision, MJCF/URDF, drop tests) → background (removal,
+inpainting targets, fill). The cameras, in the world frame, are written beside the results
+(``transforms.json``) so the output folder is self-contained. A stage that fails is recorded
+in the manifest (``failed_stage``) and raised as a ``StageError`` (bad input stays a
+``SceneInputError``); the stages after it do not run.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from phirie_jax import layout
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.physics.config import PhysicsConfig
+from phirie_jax.errors import SceneInputError, StageError
+from phirie_jax.frame.config import FrameConfig, merged, scene_frame_config
+from phirie_jax.frame.resolve import SceneFrame, resolve_frame, with_known_size
 from phirie_jax.io.scene import load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
 from phirie_jax.manifest import Manifest
@@ -45,68 +54,144 @@ class ConvertConfig:
 
 @dataclasses.dataclass(frozen=True)
 class Run:
-    """What every stage of one conversion sees."""
+    """What every stage of one conversion sees: the capture, the frame it is moved into (the
+    frame stage decides it) and the scene in that frame."""
 
-    scene: SceneInput
+    capture: SceneInput          # as the files hold it
     out_dir: Path
     config: ConvertConfig
+    frame_config: FrameConfig = FrameConfig()
     masks: str | Path | None = None
+    frame: SceneFrame | None = None
+
+    @functools.cached_property
+    def scene(self) -> SceneInput:
+        if self.frame is None:
+            raise RuntimeError("the frame stage has not run")
+        return self.frame.apply(self.capture)
 
 
-def _observe(run: Run) -> None:
+KNOWN_SIZE_TOLERANCE = 0.01  # --known-size observes again when the scale changes by more than this
+
+
+def _record_frame(run: Run) -> None:
+    """The manifest's ``frame`` and the cameras in the world frame (``transforms.json``)."""
+    manifest = Manifest.load_or_create(run.out_dir)
+    manifest.set("frame", run.frame.record())
+    manifest.write()
+    if run.scene.cameras:
+        write_transforms_json(run.out_dir / layout.CAMERAS, list(run.scene.cameras))
+
+
+def _frame(run: Run) -> Run:
+    """Up and metres per unit: given on the command line or declared by the scene folder
+    (``frame.json``; ``run.frame_config`` holds both), else estimated."""
+    manifest = Manifest.load_or_create(run.out_dir)
+    with manifest.timed("frame"):
+        frame = resolve_frame(run.capture, run.frame_config)
+    manifest.write()
+    run = dataclasses.replace(run, frame=frame)
+    _record_frame(run)
+    return run
+
+
+def _known_size(run: Run) -> Run:
+    """The frame rescaled so ``--known-size``'s instance has the given longest side."""
+    ident, metres = run.frame_config.known_size_of()
+    instances = Manifest.load_or_create(run.out_dir).instances()
+    record = next((i for i in instances if i["id"] == ident), None)
+    if record is None:
+        raise SceneInputError(None, "--known-size", f"instance {ident} was not observed (observed: "
+                              f"{', '.join(str(i['id']) for i in instances) or 'none'})")
+    with np.load(run.out_dir / record["points"]) as data:
+        points = data["points"].astype(np.float64)
+    run = dataclasses.replace(run, frame=with_known_size(run.frame, points, ident, metres))
+    _record_frame(run)
+    return run
+
+
+def _observe(run: Run) -> Run:
+    """Observation in the world frame; with ``--known-size`` the frame is rescaled from the named
+    instance's observed size, and the scene observed again when that changed the scale."""
     from phirie_jax.observe.stage import run_observe
 
-    run_observe(run.scene.root, run.out_dir, run.config.observe, masks=run.masks, scene=run.scene)
+    run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=run.scene)
+    if run.frame_config.known_size is None:
+        return run
+    rescaled = _known_size(run)
+    if abs(rescaled.frame.scale / run.frame.scale - 1) > KNOWN_SIZE_TOLERANCE:
+        run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=rescaled.scene)
+    return rescaled
 
 
-def _objects(run: Run) -> None:
+def _objects(run: Run) -> Run:
     from phirie_jax.construct.objects.stage import run_objects
     from phirie_jax.construct.physics.settling import candidate_settler
 
-    run_objects(run.scene.root, run.out_dir, run.config.objects, scene=run.scene,
+    run_objects(run.capture.root, run.out_dir, run.config.objects, scene=run.scene,
                 settle=candidate_settler(run.config.physics))
+    return run
 
 
-def _physics(run: Run) -> None:
+def _physics(run: Run) -> Run:
     from phirie_jax.construct.physics.stage import run_physics
 
-    run_physics(run.scene.root, run.out_dir, run.config.physics)
+    run_physics(run.capture.root, run.out_dir, run.config.physics)
+    return run
 
 
-def _background(run: Run) -> None:
+def _background(run: Run) -> Run:
     from phirie_jax.construct.background.stage import run_background
 
-    run_background(run.scene.root, run.out_dir, run.config.background, scene=run.scene)
+    run_background(run.capture.root, run.out_dir, run.config.background, scene=run.scene)
+    return run
 
 
 # The stage table: run in this order, each reading what the earlier ones wrote.
-STAGES: dict[str, Callable[[Run], None]] = {
-    "observe": _observe, "objects": _objects, "physics": _physics, "background": _background}
+STAGES: dict[str, Callable[[Run], Run]] = {
+    "frame": _frame, "observe": _observe, "objects": _objects, "physics": _physics, "background": _background}
 
 
 def _start(scene: SceneInput, out_dir: Path) -> None:
-    """The output folder's manifest with the scene it converts, and the capture's cameras."""
+    """The output folder's manifest with the scene it converts."""
     manifest = Manifest.load_or_create(out_dir)
     manifest.set("scene", {"path": str(scene.root), "layout": scene.layout,
                            "gaussians": str(scene.gaussians_path), "cameras": len(scene.cameras)})
+    manifest.data.pop("failed_stage", None)
     manifest.write()
-    if scene.cameras:
-        write_transforms_json(out_dir / layout.CAMERAS, list(scene.cameras))
+
+
+def _failed(out_dir: Path, stage: str, err: BaseException) -> None:
+    manifest = Manifest.load_or_create(out_dir)
+    manifest.set("failed_stage", {"stage": stage, "error": f"{type(err).__name__}: {err}"})
+    manifest.write()
 
 
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
                 masks: str | Path | None = None, gaussians: str | Path | None = None,
-                surface: str | Path | None = None, progress=None) -> dict:
-    """Run every stage of ``STAGES`` on ``scene_dir``; returns the final manifest (a dict).
-    ``progress(stage)`` is called as each stage starts."""
+                surface: str | Path | None = None, frame: FrameConfig = FrameConfig(), progress=None,
+                stages: tuple[str, ...] | None = None) -> dict:
+    """Run the stages of ``STAGES`` (all, or those named in ``stages``; the frame stage always
+    runs) on ``scene_dir``; returns the final manifest (a dict). ``progress(stage)`` is called
+    as each stage starts."""
     start = time.perf_counter()
+    frame.checked()
     scene = load_scene(scene_dir, gaussians=gaussians, surface=surface)
-    run = Run(scene, Path(out_dir), config, masks)
+    run = Run(scene, Path(out_dir), config, merged(scene_frame_config(scene.root), frame), masks)
     _start(scene, run.out_dir)
     for name, stage in STAGES.items():
+        if stages is not None and name != "frame" and name not in stages:
+            continue
         if progress is not None:
             progress(name)
-        stage(run)
+        try:
+            run = stage(run)
+        except SceneInputError as err:
+            _failed(run.out_dir, name, err)
+            raise
+        except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
+            _failed(run.out_dir, name, err)
+            raise StageError(name, err) from err
     manifest = Manifest.load_or_create(run.out_dir)
     manifest.record_timing("convert", time.perf_counter() - start)
     manifest.write()

@@ -175,6 +175,16 @@ class SceneInput:
     masks: tuple[Path | None, ...] | None = None  # aligned with ``cameras``
     candidates: dict[int, tuple[CandidateFiles, ...]] = dataclasses.field(default_factory=dict)
     segments_anno: Path | None = None
+    # (4, 4) Sim(3) the Gaussians, cameras and sparse points were moved by (``phirie_jax.frame``);
+    # None: they are as the files hold them
+    capture_to_world: np.ndarray | None = None
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) points read from a file of the capture (e.g. the scan mesh) in the scene's frame."""
+        points = np.asarray(points, np.float64)
+        if self.capture_to_world is None:
+            return points
+        return points @ self.capture_to_world[:3, :3].T + self.capture_to_world[:3, 3]
 
     @property
     def image_paths(self) -> tuple[Path | None, ...]:

@@ -27,7 +27,7 @@ LAYERS = (
     ("phirie_jax.info", 11), ("phirie_jax.demo", 11), ("phirie_jax.cli", 11),
 )
 PACKAGE_ROOTS = ("phirie_jax", "kernels")
-CONTAINERS = ("phirie_jax", "phirie_jax.construct")  # packages that only group others: they import nothing
+CONTAINERS = ("phirie_jax", "phirie_jax.construct", "phirie_jax.frame")  # packages that only group others: they import nothing
 
 
 def layer(module: str) -> int | None:

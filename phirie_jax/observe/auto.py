@@ -2,9 +2,8 @@
 
 1. Sample the observed surface: first hits of pixel rays of every camera (on a stride),
    thinned to one per ``sample_voxel``, with normals turned towards the camera.
-2. Supports: "up" starts as the cameras' mean image-up direction; a seeded RANSAC finds
-   the largest upward-facing plane and refines up; further supports are peaks of the
-   height histogram of upward-facing samples, each refitted by least squares on its
+2. Supports under the scene's up (+z of the frame resolved before observation, never
+   re-derived here): peaks of the height histogram of upward-facing samples, each refitted by least squares on its
    inliers and kept when it covers ``min_support_area``. Each support gets a 2D footprint
    (occupancy of its inliers, holes closed — the table under an object is never seen).
 3. What stands on a support: samples above it (by more than the plane threshold, at most
@@ -26,14 +25,11 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from phirie_jax.frame import camera_up
 from phirie_jax.observe.config import AutoMaskConfig
 from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, camera_problem
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.observe.surface import pack_keys
 from phirie_jax.types import Camera
-
-RANSAC_CHUNK = 16  # hypotheses scored per vectorized step
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,38 +87,13 @@ def _plane_fit(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, float(normal @ centre)
 
 
-def _ransac_up(points: np.ndarray, up: np.ndarray, config: AutoMaskConfig) -> np.ndarray:
-    """Normal of the largest plane among upward-facing samples (seeded RANSAC)."""
-    rng = np.random.default_rng(config.seed)
+def find_supports(points: np.ndarray, normals: np.ndarray, up: np.ndarray, config: AutoMaskConfig,
+                  sample_voxel: float) -> list[Support]:
+    """Upward-facing support planes (largest first) under the scene's ``up`` (3,)."""
     cos_tilt = np.cos(np.deg2rad(config.up_max_tilt_deg))
-    best, best_count = up, -1
-    for start in range(0, config.ransac_iterations, RANSAC_CHUNK):
-        triples = points[rng.integers(len(points), size=(RANSAC_CHUNK, 3))]
-        normal = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
-        length = np.linalg.norm(normal, axis=1)
-        ok = length > 1e-12
-        normal[ok] /= length[ok, None]
-        normal *= np.sign(normal @ up)[:, None]
-        ok &= normal @ up > cos_tilt
-        dist = np.abs(points @ normal.T - np.sum(normal * triples[:, 0], axis=1))
-        counts = np.where(ok, (dist < config.plane_threshold).sum(0), -1)
-        i = int(np.argmax(counts))
-        if counts[i] > best_count:
-            best_count = counts[i]
-            inliers = points[dist[:, i] < config.plane_threshold]
-            best = _plane_fit(inliers, up)[0]
-    return best
-
-
-def find_supports(points: np.ndarray, normals: np.ndarray, up_guess: np.ndarray, config: AutoMaskConfig,
-                  sample_voxel: float) -> tuple[list[Support], np.ndarray]:
-    """Upward-facing support planes (largest first) and the refined up direction."""
-    cos_tilt = np.cos(np.deg2rad(config.up_max_tilt_deg))
-    facing = normals @ up_guess > cos_tilt
-    if facing.sum() < 3:
-        return [], up_guess
-    up = _ransac_up(points[facing], up_guess, config)
     facing = normals @ up > cos_tilt
+    if facing.sum() < 3:
+        return []
     cand = points[facing]
     heights = cand @ up
     thr = config.plane_threshold
@@ -149,7 +120,7 @@ def find_supports(points: np.ndarray, normals: np.ndarray, up_guess: np.ndarray,
             continue
         supports.append(_with_footprint(cand[inl], normal, offset, config.footprint_cell,
                                         float(inl.sum() * sample_voxel**2)))
-    return supports, up
+    return supports
 
 
 def _with_footprint(inliers, normal, offset, cell, area) -> Support:
@@ -166,13 +137,17 @@ def _with_footprint(inliers, normal, offset, cell, area) -> Support:
     return Support(normal, offset, len(inliers), area, origin, grid, basis)
 
 
-def segment(points: np.ndarray, normals: np.ndarray, cameras: list[Camera], config: AutoMaskConfig
-            ) -> AutoSegmentation:
-    """Supports and the object clusters standing on them; see the module docstring."""
-    supports, up = find_supports(points, normals, camera_up(cameras), config, config.sample_voxel)
+def segment(points: np.ndarray, normals: np.ndarray, up: np.ndarray, config: AutoMaskConfig) -> AutoSegmentation:
+    """Supports under the scene's ``up`` (3,) and the object clusters standing on them; see the
+    module docstring."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    supports = find_supports(points, normals, up, config, config.sample_voxel)
     labels = np.zeros(len(points), np.int64)
     if not supports:
-        return AutoSegmentation(points, labels, [], [], [{"reason": "no support plane found"}], up)
+        facing = int((normals @ up > np.cos(np.deg2rad(config.up_max_tilt_deg))).sum())
+        reason = (f"no support plane: no upward-facing surface of at least {config.min_support_area} m² "
+                  f"within {config.up_max_tilt_deg:.0f}° of up ({facing} of {len(points)} surface samples face up)")
+        return AutoSegmentation(points, labels, [], [], [{"reason": reason}], up)
     heights = np.stack([s.height(points) for s in supports], 1)  # (N, S)
     on_support = (np.abs(heights) < config.plane_threshold).any(1)
     above = (heights >= config.plane_threshold) & (heights <= config.max_object_height)

@@ -68,8 +68,7 @@ class AutoMaskConfig:
     Attributes:
         sample_stride: pixel stride of the rays that sample the observed surface.
         sample_voxel: the observed surface samples are thinned to one per voxel of this size.
-        up_max_tilt_deg: a support's normal is within this angle of "up" (the mean image-up
-            direction of the cameras, refined by the largest support).
+        up_max_tilt_deg: a support's normal is within this angle of up (the scene frame's +z).
         plane_threshold: points this close to a support plane belong to it.
         min_support_area: a support covers at least this area (m²) of upward-facing surface.
         footprint_cell: grid cell of a support's 2D footprint (holes under objects are filled).
@@ -81,8 +80,6 @@ class AutoMaskConfig:
         max_base_gap: a cluster stands on its support when its lowest point is this close.
         min_object_height: a cluster's top is at least this high above its support (a noisy
             splat-derived floor has bumps of up to 2.4 cm; flatter objects are missed).
-        ransac_iterations: plane hypotheses for the dominant support (seeded, deterministic).
-        seed: RANSAC seed.
     """
 
     sample_stride: int = 2
@@ -97,8 +94,6 @@ class AutoMaskConfig:
     max_object_height: float = 0.6
     max_base_gap: float = 0.03
     min_object_height: float = 0.03
-    ransac_iterations: int = 256
-    seed: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

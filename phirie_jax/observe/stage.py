@@ -89,7 +89,11 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
         if len(mesh.faces) == 0:
             raise SceneInputError(scene.surface_mesh, "faces", "none (expected a triangle mesh)")
         record = {"kind": "scan", "path": str(scene.surface_mesh), "faces": len(mesh.faces)}
-        return SurfaceMesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), record), record
+        surface = SurfaceMesh(scene.to_world(mesh.vertices), np.asarray(mesh.faces, np.int64), record)
+        if scene.capture_to_world is not None:  # later stages read the surface in the scene's frame
+            write_bytes(out_dir / "observe" / "surface.ply", surface.to_trimesh().export(file_type="ply"))
+            record = {**record, "path": "observe/surface.ply", "scan": str(scene.surface_mesh)}
+        return surface, record
     if scene.gaussians is None or not scene.cameras:
         raise SceneInputError(scene.root, "surface", "no scan mesh and no way to build one (a splat-derived "
                               "surface needs the Gaussians and posed cameras; expected --surface PATH or "
@@ -119,8 +123,9 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
 
 
 def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
-               config: ObserveConfig, record: dict):
-    """The per-view masks of the chosen source (an iterator) and the source's name."""
+               config: ObserveConfig, record: dict, up: np.ndarray | None = None):
+    """The per-view masks of the chosen source (an iterator) and the source's name; ``up`` (3,)
+    is the scene's (automatic masks look for supports under it; default +z)."""
     if masks == "files":
         if scene.masks is not None:
             return file_masks(scene.cameras, scene.masks), "files"
@@ -131,7 +136,7 @@ def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
             scan = trimesh.load(scene.surface_mesh, force="mesh", process=False)
             vertex_labels, names = scannetpp_vertex_labels(scene.segments_anno, len(scan.vertices))
             record["annotations"] = str(scene.segments_anno)
-            return projected_masks(Raycaster(scan.vertices, scan.faces), vertex_labels, scene.cameras, names,
+            return projected_masks(Raycaster(scene.to_world(scan.vertices), scan.faces), vertex_labels, scene.cameras, names,
                                    "segments_anno"), "files"
         raise SceneInputError(scene.root / "masks", "--masks files",
                               "no masks/ folder and no ScanNet++ annotations (use --masks auto or a folder)")
@@ -140,7 +145,7 @@ def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
         cams = [c for c in scene.cameras if camera_problem(c) is None]
         points, normals = auto_mod.observed_samples(raycaster, cams, config.auto.sample_stride,
                                                     config.auto.sample_voxel)
-        seg = auto_mod.segment(points, normals, cams, config.auto)
+        seg = auto_mod.segment(points, normals, np.array([0.0, 0.0, 1.0]) if up is None else up, config.auto)
         record["auto"] = {"samples": len(points), "up": seg.up.round(6).tolist(),
                           "supports": [s.as_dict() for s in seg.supports], "objects": seg.objects,
                           "rejected_clusters": seg.rejected, "segment_s": round(time.perf_counter() - t0, 4)}
@@ -276,7 +281,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
             raycaster = Raycaster(surface.vertices, surface.faces)
         record: dict = {"surface": surface_record}
         with manifest.timed("observe.masks"):
-            views, source = mask_views(scene, masks, raycaster, config, record)
+            views, source = mask_views(scene, masks, raycaster, config, record, manifest.up())
         lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
         instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),

@@ -6,6 +6,7 @@
     transforms.json        nerfstudio cameras        sparse/0/*.txt   the same, as COLMAP text
     images/NNNN.png        renders of the capture    masks/NNNN.png   16-bit instance ids
     surface.ply            the scene surface mesh (floor, table, objects)
+    frame.json             the capture's frame as declared: metric, +z up
     gt/objects.json        per object: id, category, world and canonical mesh, pose
     gt/objects/<id>/{canonical,world}.obj
     gt/background.ply      floor + table Gaussians including the tabletop under the objects
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.frame.config import SCENE_FRAME_FILE
 from phirie_jax.io.atomic import write_bytes, write_text
 from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.colmap import write_colmap_text
@@ -295,5 +297,6 @@ def synthesize(out_dir: str | Path, preset: str = "default", seed: int = 0, prog
     write_transforms_json(out / "transforms.json", scene.cameras)
     write_gaussian_ply(out / "point_cloud.ply", data)
     write_mesh(out / "surface.ply", surface_mesh(scene))
+    write_text(out / SCENE_FRAME_FILE, json.dumps({"metric": True, "up": "+z"}) + "\n")
     write_ground_truth(scene, out)
     return scene

@@ -19,8 +19,10 @@ Reads the observation stage's outputs in ``out_dir`` (``manifest.json`` ``instan
 Folders ``objects/<id>/`` that a previous run into the same ``out_dir`` wrote for objects
 this run has no assets for are removed (only when they hold nothing but the stages' files).
 
-Writes the manifest ``objects`` section (DESIGN.md "Contracts"), a ``construct`` record
-(gravity frame, supports, config), the scene ``frame`` (up, decided once here) and timings ``objects`` / ``objects.<step>``. A failure
+Works in the scene's frame (``phirie_jax.frame``: metres, up as the manifest's ``frame``
+records it, +z for every scene converted with one). Writes the manifest ``objects`` section
+(DESIGN.md "Contracts"), a ``construct`` record (supports, config) and timings ``objects`` /
+``objects.<step>``. A failure
 of one object is recorded (status "failed" with the reason) and the rest go on.
 """
 
@@ -51,9 +53,10 @@ from phirie_jax.construct.objects.register import (
     score_placement,
     search,
 )
-from phirie_jax.construct.objects.support import Support, find_support, refined_by_supports
+from phirie_jax.construct.objects.support import Support, find_support
 from phirie_jax.errors import SceneInputError
-from phirie_jax.frame import GravityFrame, initial_frame
+from phirie_jax.frame.gravity import GravityFrame, gravity_frame
+from phirie_jax.frame.resolve import scene_in_world
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
@@ -278,12 +281,11 @@ def _load_instances(manifest: Manifest, out_dir: Path) -> tuple[list[_Observed],
     return loaded, failures
 
 
-def _frame_and_supports(manifest: Manifest, scene: SceneInput, loaded: list[_Observed], raycaster
+def _frame_and_supports(manifest: Manifest, loaded: list[_Observed], raycaster
                         ) -> tuple[GravityFrame, list[Support]]:
-    """Up, decided here once (``phirie_jax.frame``), and each instance's support under it."""
-    frame = initial_frame(scene.cameras, manifest.observed_up())
-    supports = [find_support(frame.to_gravity(o.points), frame, raycaster) for o in loaded]
-    frame = refined_by_supports(frame, supports)
+    """The scene's gravity frame (up as decided once, ``phirie_jax.frame``) and each instance's
+    support under it."""
+    frame = gravity_frame(manifest.up(), "scene frame")
     return frame, [find_support(frame.to_gravity(o.points), frame, raycaster) for o in loaded]
 
 
@@ -304,14 +306,13 @@ def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list
     return objects
 
 
-def _record(manifest: Manifest, objects: list[dict], frame: GravityFrame, surface_path: str | None,
+def _record(manifest: Manifest, objects: list[dict], surface_path: str | None,
             loaded: list[_Observed], supports: list[Support], config: ObjectsConfig, out_dir: Path) -> None:
     objects.sort(key=lambda o: o["id"])
     stale = assets.remove_stale_object_folders(out_dir, {o["id"] for o in objects if o.get("mesh")})
     manifest.set("objects", objects)
-    manifest.set("frame", frame.record())
     manifest.set("construct", {
-        "gravity": {"up": frame.up, "source": frame.source}, "surface": surface_path,
+        "surface": surface_path,
         "supports": [{"id": o.record["id"], "height": s.height, "source": s.source, "hits": s.hits}
                      for o, s in zip(loaded, supports)],
         "strict": config.strict, "config": to_dict(config), "stale_object_folders": stale})
@@ -329,12 +330,12 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
     manifest = Manifest.load_or_create(out_dir)
     manifest.instances()  # the observation stage ran
     with manifest.timed("objects"):
-        scene = scene or load_scene(scene_dir, check_images=False)
+        scene = scene or scene_in_world(load_scene(scene_dir, check_images=False), manifest.capture_to_world())
         raycaster, surface_path = _raycaster(manifest, scene)
         loaded, failures = _load_instances(manifest, out_dir)
-        with manifest.timed("objects.frame"):
-            frame, supports = _frame_and_supports(manifest, scene, loaded, raycaster)
+        with manifest.timed("objects.supports"):
+            frame, supports = _frame_and_supports(manifest, loaded, raycaster)
         objects = failures + _construct_each(loaded, frame, supports, scene, config, out_dir, manifest, settle)
-        _record(manifest, objects, frame, surface_path, loaded, supports, config, out_dir)
+        _record(manifest, objects, surface_path, loaded, supports, config, out_dir)
     manifest.write()
     return manifest.data

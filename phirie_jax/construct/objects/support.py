@@ -1,5 +1,4 @@
-"""Each instance's support plane (in the gravity frame of ``phirie_jax.frame``), whose normals
-also refine up.
+"""Each instance's support plane, in the scene's gravity frame (``phirie_jax.frame.gravity``).
 
 Support of an instance: rays cast straight down onto the scene surface around its
 footprint (a ring 1.5–6 cm outside Q's robust box) hit what it stands on. Of the hits
@@ -15,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from phirie_jax.frame import MIN_PLANE_HITS, GravityFrame, refine_frame
+from phirie_jax.frame.gravity import GravityFrame
 
 RING_INNER, RING_OUTER = 0.015, 0.06   # ring around the footprint, metres
 RING_RAYS = 24                         # rays per side of the ring's sampling grid
@@ -23,6 +22,7 @@ ABOVE_BASE = 0.01                      # hits up to this above Q's base height c
 MAX_HIDDEN_BASE = 0.15                 # ... and down to this below it
 HEIGHT_BIN = 0.005                     # the support is the densest bin of hit heights
 SUPPORT_BAND = 0.01                    # hits within this of that bin are the support's
+MIN_PLANE_HITS = 20                    # support hits needed to fit the support's normal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,9 +67,3 @@ def find_support(q_gravity: np.ndarray, frame: GravityFrame, raycaster=None) -> 
                 normal = normal if normal[2] > 0 else -normal
             return Support(float(np.median(near[:, 2])), "surface", int(len(near)), normal)
     return Support(base, "observed points", 0, np.array([0.0, 0.0, 1.0]))
-
-
-def refined_by_supports(frame: GravityFrame, supports: list[Support]) -> GravityFrame:
-    """``frame.refine_frame`` with the normals of the supports fitted on the scene surface."""
-    fitted = [s for s in supports if s.source == "surface"]
-    return refine_frame(frame, np.array([s.normal for s in fitted]).reshape(-1, 3), np.array([s.hits for s in fitted]))

@@ -1,0 +1,112 @@
+"""The scene frame on a synthetic tabletop copied into a tilted, scaled (×3.7), shifted frame:
+up and metres are recovered (given, or estimated within the stated uncertainty), and moving a
+capture into the world changes nothing a camera sees except depth units."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from phirie_jax.frame import estimate
+from phirie_jax.frame.config import FrameConfig, scene_frame_config
+from phirie_jax.frame.resolve import resolve_frame, scene_in_world, with_known_size
+from phirie_jax.geometry import sim3_matrix, split_sim3
+from phirie_jax.io.scene import load_scene
+from phirie_jax.render import render
+from phirie_jax.synthetic import synthesize
+from phirie_jax.synthetic.reframe import reframe_scene
+
+UNITS_PER_METRE = 3.7
+TILT = Rotation.from_euler("xyz", [70, -20, 35], degrees=True).as_matrix()
+WORLD_TO_CAPTURE = sim3_matrix(UNITS_PER_METRE, TILT, np.array([0.4, -1.2, 2.0]))
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("frame")
+    synthesize(root / "scene", preset="tiny", seed=3)
+    reframe_scene(root / "scene", root / "tilted", WORLD_TO_CAPTURE)
+    return root / "scene", root / "tilted"
+
+
+def truth_to_world(frame) -> tuple[float, np.ndarray]:
+    """(scale, rotation) of the map from the synthetic truth's frame to the resolved world."""
+    scale, rotation, _ = split_sim3(frame.capture_to_world @ WORLD_TO_CAPTURE)
+    return scale, rotation
+
+
+def test_a_declared_metric_z_up_scene_is_left_as_it_is(scenes):
+    scene = load_scene(scenes[0])
+    frame = resolve_frame(scene, scene_frame_config(scenes[0]))
+    assert frame.is_identity and frame.scale_source == "declared metric"
+    assert frame.apply(scene) is scene
+
+
+def test_given_scale_and_estimated_up(scenes):
+    frame = resolve_frame(load_scene(scenes[1]), FrameConfig(scale=1 / UNITS_PER_METRE))
+    scale, rotation = truth_to_world(frame)
+    assert scale == pytest.approx(1.0, rel=1e-9)
+    assert np.degrees(np.arccos(rotation[2, 2])) < 0.2          # truth's +z is the world's +z
+    assert frame.up_source.startswith("support plane") and frame.scale_source == "given (--scale)"
+
+
+def test_estimated_scale_is_within_its_stated_uncertainty(scenes):
+    frame = resolve_frame(load_scene(scenes[1]))
+    scale, rotation = truth_to_world(frame)
+    assert 1 / frame.scale_uncertainty <= scale <= frame.scale_uncertainty
+    assert np.degrees(np.arccos(rotation[2, 2])) < 0.2
+    assert "table top" in frame.scale_source and frame.scale_uncertainty < 1.2
+    record = frame.record()
+    assert record["up"] == [0.0, 0.0, 1.0] and np.asarray(record["capture_to_world"]).shape == (4, 4)
+
+
+def test_known_size_rescales_to_the_given_length(scenes):
+    frame = resolve_frame(load_scene(scenes[1]))
+    box = np.random.default_rng(0).uniform([0, 0, 0], [0.3, 0.1, 0.05], (500, 3)) * frame.scale
+    sized = with_known_size(frame, box, 4, 0.15)
+    side = 0.3 * frame.scale  # the points' longest side, in metres at the frame's scale
+    assert sized.scale == pytest.approx(frame.scale * 0.15 / side, rel=0.02)
+    assert sized.scale_uncertainty > 1 and "--known-size 4=0.15" in sized.scale_source
+
+
+def test_moving_into_the_world_changes_only_depth_units(scenes):
+    scene = load_scene(scenes[1])
+    frame = resolve_frame(scene, FrameConfig(scale=1 / UNITS_PER_METRE))
+    world = frame.apply(scene)
+    assert world.capture_to_world is not None
+    for view in (0, 5):
+        before = render(scene.require_gaussians().to_kernel(), scene.cameras[view])
+        after = render(world.require_gaussians().to_kernel(), world.cameras[view])
+        np.testing.assert_allclose(np.asarray(after.rgb), np.asarray(before.rgb), atol=2e-3)
+        hit = np.asarray(before.alpha) > 0.5
+        np.testing.assert_allclose(np.asarray(after.depth_normalized)[hit],
+                                   np.asarray(before.depth_normalized)[hit] / UNITS_PER_METRE, rtol=1e-3, atol=1e-4)
+    points = scene.require_gaussians().means[:10]
+    np.testing.assert_allclose(world.to_world(points), world.require_gaussians().means[:10], atol=1e-5)
+    with pytest.raises(ValueError, match="already"):
+        scene_in_world(world, frame.capture_to_world)
+
+
+def test_camera_votes_and_a_wall_without_support():
+    rng = np.random.default_rng(1)
+    up = rng.normal(size=3)
+    up /= np.linalg.norm(up)
+    from phirie_jax.geometry import rotation_to_z
+    from phirie_jax.synthetic.scene import look_at
+    from phirie_jax.types import Camera
+
+    to_capture = rotation_to_z(up).T  # +z → up
+    cameras = []
+    for angle in np.linspace(-0.6, 0.6, 7):  # an arc in front of a wall, looking slightly down
+        eye = np.array([np.sin(angle), -np.cos(angle), 0.3]) * 1.5
+        w2c = look_at(eye, np.array([0.0, 0.0, 0.0]))
+        moved = np.eye(4)
+        moved[:3, :3] = w2c[:3, :3] @ to_capture.T
+        moved[:3, 3] = w2c[:3, 3]
+        cameras.append(Camera(f"{len(cameras)}.png", np.eye(3), moved, 100, 100))
+    assert estimate.angle_deg(estimate.cameras_up(cameras), up) < 0.5  # level cameras: up ⟂ every x axis
+    wall = estimate.Plane(to_capture @ np.array([0.0, -1.0, 0.0]), 0.0, 1000, 0.5)
+    found, source = estimate.estimate_up([wall], tuple(cameras))
+    assert estimate.angle_deg(found, up) < 0.5 and source.startswith("cameras")
+    assert estimate.estimate_scale([wall], found, tuple(cameras), 1.5 * 3)[1].startswith("cameras")
