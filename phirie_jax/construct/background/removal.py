@@ -6,7 +6,9 @@ For each object the object stage made (status in ``RemovalConfig.statuses``):
   surface samples Q_i (``observe/instance_<id>.npz``);
 - R_asset: ... within ``asset_radius`` (paper: 2.4 cm) of the registered asset's surface
   (``objects/<id>/mesh.obj`` placed by ``pose``): it reaches what the scan missed (the back,
-  the base);
+  the base); and (ours) every centre inside the placed asset: optimizer-shaped captures put
+  Gaussians deep inside large objects, beyond the paper's shell, and they would stay as
+  coloured remains where the object stood;
 - R_mask: centres inside the expanded object bounds (Q_i ∪ the placed asset, grown by
   ``bounds_margin``) that project inside the instance's mask in ≥ ``mask_votes`` views (paper: 2)
   *and are visible there*: a centre more than ``occlusion_tolerance`` behind the depth rendered at
@@ -86,8 +88,8 @@ def near_points(means: np.ndarray, points: np.ndarray, radius: float) -> np.ndar
 
 
 def near_surface(means: np.ndarray, vertices: np.ndarray, faces: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of ``means`` within ``radius`` of the triangle surface (R_asset; exact point–triangle
-    distances by Open3D's ``RaycastingScene``)."""
+    """Indices of ``means`` within ``radius`` of the triangle surface or inside it (R_asset; exact
+    point–triangle distances and inside-ness by ray parity, three rays, Open3D's ``RaycastingScene``)."""
     import open3d as o3d
 
     box = np.stack([vertices.min(0) - radius, vertices.max(0) + radius])
@@ -96,8 +98,10 @@ def near_surface(means: np.ndarray, vertices: np.ndarray, faces: np.ndarray, rad
         return np.zeros(0, np.int64)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    d = scene.compute_distance(o3d.core.Tensor(means[idx].astype(np.float32))).numpy()
-    return idx[d <= radius]
+    query = o3d.core.Tensor(means[idx].astype(np.float32))
+    near = scene.compute_distance(query).numpy() <= radius
+    inside = scene.compute_occupancy(query, nsamples=3).numpy() > 0.5
+    return idx[near | inside]
 
 
 def read_mask(path: Path) -> np.ndarray:
