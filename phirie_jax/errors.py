@@ -19,6 +19,9 @@ class SceneInputError(ValueError):
         parts.append(problem)
         super().__init__(": ".join(parts))
 
+    def __reduce__(self):  # pickles (e.g. from a child process) with its three arguments
+        return type(self), (self.path, self.field, self.problem)
+
 
 class SurfaceTooLargeError(SceneInputError):
     """The splat-derived surface's TSDF grid would not fit the memory budget.

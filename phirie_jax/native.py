@@ -30,7 +30,7 @@ def _child(conn, fn, args, kwargs) -> None:
     except BaseException as err:  # noqa: BLE001 — every failure goes back to the parent
         text = "".join(traceback.format_exception(err))
         try:
-            pickle.dumps(err)
+            pickle.loads(pickle.dumps(err))  # some exceptions pickle but do not unpickle
             message = ("raised", (err, text))
         except Exception:  # noqa: BLE001 — an exception that does not pickle travels as text
             message = ("raised", (None, text))
