@@ -66,8 +66,10 @@ class SurfaceConfig:
         snap_min_opacity: only Gaussians at least this opaque are surface evidence.
         memory_budget_gb: the TSDF grid is sized from the blocks the depth samples reach; when
             those blocks would take more than this (GB, an estimate per backend) the surface is
-            refused before anything is allocated, with the bounds, voxel and block count. 4 GB
-            holds ~10⁶ Open3D blocks of 8³ voxels: ~16 m² of surface at 5 mm voxels.
+            refused before anything is allocated, with the bounds, voxel and block count. At
+            5 mm voxels a metre² of surface needs ~1,600 blocks of 8³ (measured); 4 GB then holds
+            ~150–300 m² with Open3D (4 KB a block) and ~20–30 m² with the JAX kernel (~80 KB a
+            block with its per-frame intermediates), the range from power-of-two padding.
         floaters: Gaussians left out of the depth rendering and the snapping.
     """
 

@@ -7,7 +7,12 @@ with ~2 cm truncation, extract a mesh. Two backends give the same surface:
 - ``jax``: ``kernels.tsdf.fuse`` on a sparse grid of 8³-voxel blocks chosen on the host
   (those the truncation band of some depth sample reaches; the block count is padded
   to a power of two), then naive surface nets (``surface_nets``) on the host.
-- ``open3d``: Open3D's ``VoxelBlockGrid`` (tensor API) and its marching cubes.
+- ``open3d``: Open3D's ``VoxelBlockGrid`` (tensor API) and its marching cubes, run in a
+  child process (``phirie_jax.native``) so a crash in it is a ``NativeLibraryError``.
+
+Both grids are sized from the blocks the depth samples reach (``plan_grid``); a grid over
+``SurfaceConfig.memory_budget_gb`` is refused before it is allocated
+(``SurfaceTooLargeError``, naming the samples' bounds, the voxel and the block count).
 
 Then (ours, beyond the paper) each vertex is snapped along its normal onto the opaque
 Gaussian centres near it (``snap_to_centres``): alpha-composited depth of overlapping
