@@ -19,6 +19,28 @@ class SceneInputError(ValueError):
         parts.append(problem)
         super().__init__(": ".join(parts))
 
+    def __reduce__(self):  # pickles (e.g. from a child process) with its three arguments
+        return type(self), (self.path, self.field, self.problem)
+
+
+class SurfaceTooLargeError(SceneInputError):
+    """The splat-derived surface's TSDF grid would not fit the memory budget.
+
+    Raised before anything is allocated; the message states the bounds of the depth samples,
+    the voxel size and the blocks needed against the budget (usually the scene is not in
+    metres, or the voxel is too fine for its size).
+    """
+
+
+class NativeLibraryError(RuntimeError):
+    """A native library (Open3D, CoACD, ...) killed the process it ran in (a signal such as
+    SIGSEGV or SIGABRT, or an exit without a result). ``library`` names it, ``signal`` is the
+    signal's name or None."""
+
+    def __init__(self, library: str, problem: str, signal: str | None = None):
+        self.library = library
+        self.signal = signal
+        super().__init__(f"{library} {problem}")
 
 class OptionError(ValueError):
     """An option that cannot be used. The message is one line: ``--OPTION: VALUE (expected ...)``;

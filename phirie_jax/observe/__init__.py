@@ -3,6 +3,7 @@
 stage      run_observe: the stage driver
 config     ObserveConfig (with SurfaceConfig, AutoMaskConfig)
 surface    the scene surface: a scan mesh, or TSDF fusion of rendered depths
+floaters   Gaussians left out of the splat-derived surface (haze, blobs, floaters)
 masks      mask files, or labels rendered from candidate Gaussians
 auto       automatic instance discovery on the splat-derived surface
 raycast    first-hit ray casting against a mesh

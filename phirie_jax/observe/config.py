@@ -10,6 +10,35 @@ import dataclasses
 
 
 @dataclasses.dataclass(frozen=True)
+class FloaterConfig:
+    """Gaussians left out of the splat-derived surface (``observe/floaters.py``); ours, beyond
+    the paper. Every rule is relative to the scene's own Gaussians, so it holds in any units.
+
+    Attributes:
+        enabled: False keeps every Gaussian.
+        min_opacity: more transparent Gaussians are haze (3DGS training itself prunes below
+            0.005; at 0.05 a Gaussian needs ~14 layers to reach the fused alpha of 0.6).
+        large_mads: a Gaussian whose largest axis (log) is more than this many robust
+            deviations above the scene's median is a background or sky blob.
+        neighbours: the isolation rule looks at the distance to this many-th nearest centre.
+        isolated_factor: a centre whose ``neighbours``-th neighbour is farther than this times
+            the scene's median such distance floats in free space.
+    """
+
+    enabled: bool = True
+    min_opacity: float = 0.05
+    large_mads: float = 5.0
+    neighbours: int = 8
+    isolated_factor: float = 10.0
+
+    def __post_init__(self):
+        if not (0 <= self.min_opacity < 1 and self.large_mads > 0 and self.neighbours >= 1
+                and self.isolated_factor > 1):
+            raise ValueError("floaters: need 0 ≤ min_opacity < 1, large_mads > 0, neighbours ≥ 1 and "
+                             f"isolated_factor > 1 (got {self})")
+
+
+@dataclasses.dataclass(frozen=True)
 class SurfaceConfig:
     """The splat-derived scene surface: TSDF fusion of rendered depth, then a mesh.
 
@@ -35,6 +64,13 @@ class SurfaceConfig:
             after: median 0.0 mm). 0 turns it off.
         snap_neighbours: Gaussian centres consulted per vertex.
         snap_min_opacity: only Gaussians at least this opaque are surface evidence.
+        memory_budget_gb: the TSDF grid is sized from the blocks the depth samples reach; when
+            those blocks would take more than this (GB, an estimate per backend) the surface is
+            refused before anything is allocated, with the bounds, voxel and block count. At
+            5 mm voxels a metre² of surface needs ~1,600 blocks of 8³ (measured); 4 GB then holds
+            ~150–300 m² with Open3D (4 KB a block) and ~20–30 m² with the JAX kernel (~80 KB a
+            block with its per-frame intermediates), the range from power-of-two padding.
+        floaters: Gaussians left out of the depth rendering and the snapping.
     """
 
     voxel: float = 0.005
@@ -49,12 +85,16 @@ class SurfaceConfig:
     snap_radius: float = 0.015
     snap_neighbours: int = 8
     snap_min_opacity: float = 0.5
+    memory_budget_gb: float = 4.0
+    floaters: FloaterConfig = FloaterConfig()
 
     def __post_init__(self):
         if self.backend not in ("jax", "open3d"):
             raise ValueError(f"surface backend {self.backend!r} (expected 'jax' or 'open3d')")
         if not (self.voxel > 0 and self.truncation >= self.voxel and self.view_stride >= 1):
             raise ValueError("surface: need voxel > 0, truncation ≥ voxel and view_stride ≥ 1")
+        if not self.memory_budget_gb > 0:
+            raise ValueError(f"surface: memory_budget_gb {self.memory_budget_gb} (expected > 0)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +154,12 @@ class ObserveConfig:
         points_voxel: an instance's observed points Q_i are thinned to one per voxel of this
             size (the surface resolution).
         max_points: at most this many points in Q_i (a seeded subsample beyond it).
+        working_width: observation renders and ray casts at this image width whatever the
+            photos' size (a wider photo's camera is scaled down; the height follows): the
+            depth rendered for the splat-derived surface, the rays that lift mask pixels and
+            the rays that make automatic masks. Masks and outputs stay at the photos' size.
+            0 = the photos' size. 640 bounds the per-pixel work of a 4K phone capture to what
+            a 640-wide one costs; photos at most this wide are observed as they are.
         surface_source: "auto" (the scan mesh when the scene has one, else splat-derived),
             "mesh" (require the scan mesh) or "splats" (always build it from the Gaussians).
         surface: splat-derived surface settings.
@@ -128,6 +174,7 @@ class ObserveConfig:
     min_proposal_points: int = 3
     points_voxel: float = 0.005
     max_points: int = 50_000
+    working_width: int = 640
     surface_source: str = "auto"
     surface: SurfaceConfig = SurfaceConfig()
     auto: AutoMaskConfig = AutoMaskConfig()
@@ -137,5 +184,7 @@ class ObserveConfig:
             raise ValueError(f"surface_source {self.surface_source!r} (expected 'auto', 'mesh' or 'splats')")
         if not (0 < self.overlap <= 1):
             raise ValueError(f"overlap {self.overlap} (expected in (0, 1])")
+        if self.working_width < 0:
+            raise ValueError(f"working_width {self.working_width} (expected ≥ 0; 0 = the photos' size)")
         if self.min_views < 1 or self.pixel_stride < 1 or self.mask_erosion_px < 0:
             raise ValueError("need min_views ≥ 1, pixel_stride ≥ 1 and mask_erosion_px ≥ 0")

@@ -1,6 +1,7 @@
 """First-hit lifting: each (view, mask) becomes the surface points its pixels see.
 
-For the mask pixels on a stride (away from other labels by ``mask_erosion_px``), the ray
+For the mask pixels on a stride (away from other labels by ``mask_erosion_px``; on a photo
+wider than ``working_width``, the pixels of the working image's stride), the ray
 through the pixel centre meets the scene surface first at one point; that point is the
 pixel's 3D observation. One ray cast per view serves all of its masks.
 """
@@ -14,7 +15,7 @@ from scipy import ndimage
 
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.masks import ViewMasks
-from phirie_jax.observe.raycast import Raycaster, pixel_grid, pixel_rays
+from phirie_jax.observe.raycast import Raycaster, pixel_rays, working_pixel_grid
 from phirie_jax.types import Camera
 
 
@@ -51,7 +52,7 @@ def lift_view(raycaster: Raycaster, camera: Camera, masks: ViewMasks, config: Ob
     labels = masks.labels
     present, counts = np.unique(labels, return_counts=True)
     pixel_count = dict(zip(present.tolist(), counts.tolist()))
-    rows, cols = pixel_grid(camera.width, camera.height, config.pixel_stride)
+    rows, cols = working_pixel_grid(camera.width, camera.height, config.pixel_stride, config.working_width)
     sampled = labels[np.ix_(rows, cols)].ravel()
     usable = interior(labels, config.mask_erosion_px)[np.ix_(rows, cols)].ravel()
     origins, dirs = pixel_rays(camera, rows, cols)

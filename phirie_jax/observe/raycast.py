@@ -35,6 +35,31 @@ def pixel_grid(width: int, height: int, stride: int = 1) -> tuple[np.ndarray, np
     return rows, cols
 
 
+def working_pixel_grid(width: int, height: int, stride: int = 1, working_width: int = 0
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the photo's pixels sampled when observing at ``working_width``.
+
+    A photo at most ``working_width`` wide (or ``working_width`` 0) gives ``pixel_grid``
+    itself. A wider one gives, for each pixel of the image scaled to ``working_width`` on
+    ``stride``, the photo pixel under its centre: no more rows and columns than the working
+    image has, and every ray still passes through a photo pixel's centre.
+    """
+    if working_width <= 0 or width <= working_width:
+        return pixel_grid(width, height, stride)
+    factor = working_width / width
+    rows, cols = pixel_grid(working_width, max(1, int(round(height * factor))), stride)
+    return (np.minimum(((rows + 0.5) / factor).astype(np.int64), height - 1),
+            np.minimum(((cols + 0.5) / factor).astype(np.int64), width - 1))
+
+
+def nearest_index(sampled: np.ndarray, size: int) -> np.ndarray:
+    """(size,) index into the sorted pixel positions ``sampled`` (S ≥ 1,) of the nearest to each of 0..size−1."""
+    target = np.arange(size)
+    right = np.minimum(np.searchsorted(sampled, target), len(sampled) - 1)
+    left = np.maximum(right - 1, 0)
+    return np.where(np.abs(target - sampled[left]) <= np.abs(sampled[right] - target), left, right)
+
+
 def pixel_rays(camera: Camera, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World rays through pixel centres of rows × cols: origins (R, 3), directions (R, 3) with z_cam = 1.
 
@@ -49,13 +74,18 @@ def pixel_rays(camera: Camera, rows: np.ndarray, cols: np.ndarray) -> tuple[np.n
 
 
 class Raycaster:
-    """A triangle mesh prepared once for many ray queries."""
+    """A triangle mesh prepared once for many ray queries.
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+    working_width: ``cast_camera`` of a wider photo casts only the rays of the image scaled to
+    this width (``working_pixel_grid``) and gives every requested pixel the hit of the nearest
+    cast one; 0 casts every requested pixel."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, working_width: int = 0):
         import open3d as o3d
 
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
+        self.working_width = int(working_width)
         if len(self.faces) == 0:
             raise ValueError("cannot ray cast an empty mesh")
         self._scene = o3d.t.geometry.RaycastingScene()
@@ -63,8 +93,8 @@ class Raycaster:
                                   o3d.core.Tensor(self.faces.astype(np.uint32)))
 
     @classmethod
-    def from_trimesh(cls, mesh) -> Raycaster:
-        return cls(mesh.vertices, mesh.faces)
+    def from_trimesh(cls, mesh, working_width: int = 0) -> Raycaster:
+        return cls(mesh.vertices, mesh.faces, working_width)
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 1 << 20) -> Hits:
         """First hits of rays (R, 3), (R, 3); ``depth`` is in units of the direction's length."""
@@ -94,9 +124,18 @@ class Raycaster:
         return Hits(points, t, face, bary, normal)
 
     def cast_camera(self, camera: Camera, stride: int = 1) -> tuple[Hits, np.ndarray, np.ndarray]:
-        """Hits of the rays through the camera's pixels on ``stride``; also their rows, cols."""
+        """Hits of the rays through the camera's pixels on ``stride`` (R = len(rows) · len(cols),
+        row-major); also their rows, cols. Past ``working_width`` the rays of the working grid
+        are cast and each pixel takes the hit of the nearest of them."""
         rows, cols = pixel_grid(camera.width, camera.height, stride)
-        return self.cast(*pixel_rays(camera, rows, cols)), rows, cols
+        cast_rows, cast_cols = working_pixel_grid(camera.width, camera.height, stride, self.working_width)
+        hits = self.cast(*pixel_rays(camera, cast_rows, cast_cols))
+        if len(cast_rows) == len(rows) and len(cast_cols) == len(cols):
+            return hits, rows, cols
+        r = nearest_index(cast_rows, camera.height)[rows]
+        c = nearest_index(cast_cols, camera.width)[cols]
+        pick = (r[:, None] * len(cast_cols) + c[None, :]).ravel()
+        return Hits(hits.points[pick], hits.depth[pick], hits.face[pick], hits.bary[pick], hits.normal[pick]), rows, cols
 
     def depth_map(self, camera: Camera) -> np.ndarray:
         """(H, W) camera-z depth of the first hit per pixel, 0 where the ray misses."""

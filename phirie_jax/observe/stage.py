@@ -36,6 +36,7 @@ from phirie_jax.manifest import Manifest, to_dict
 from phirie_jax.observe import auto as auto_mod
 from phirie_jax.observe.associate import associate
 from phirie_jax.observe.config import ObserveConfig
+from phirie_jax.observe.floaters import surface_gaussians
 from phirie_jax.observe.lift import Proposal, lift_view
 from phirie_jax.observe.masks import (
     ViewFailure,
@@ -50,16 +51,29 @@ from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
 from phirie_jax.types import Camera, SceneInput
 
 
-def render_depths(scene: SceneInput, config: ObserveConfig) -> tuple[list[np.ndarray], list[Camera], list[dict]]:
-    """Rendered depth (alpha ≥ min_alpha, else 0) at every ``view_stride``-th camera, and failures."""
+def working_camera(camera: Camera, working_width: int) -> Camera:
+    """The camera scaled down to ``working_width`` when its photo is wider (0: as it is)."""
+    if working_width <= 0 or camera.width <= working_width:
+        return camera
+    return camera.scaled(working_width / camera.width)
+
+
+def render_depths(scene: SceneInput, config: ObserveConfig, gaussians=None
+                  ) -> tuple[list[np.ndarray], list[Camera], list[dict]]:
+    """Rendered depth (alpha ≥ min_alpha, else 0) at every ``view_stride``-th camera, and failures.
+
+    Each camera is rendered at ``config.working_width`` (``working_camera``); the returned
+    cameras are the ones rendered. ``gaussians``: the host Gaussians to render (default the
+    scene's)."""
     from phirie_jax.render import render
 
-    gaussians = scene.require_gaussians().to_kernel()
+    gaussians = (gaussians if gaussians is not None else scene.require_gaussians()).to_kernel()
     depths, cams, failures = [], [], []
     for view in range(0, len(scene.cameras), config.surface.view_stride):
         cam = scene.cameras[view]
         problem = camera_problem(cam)
         if problem is None:
+            cam = working_camera(cam, config.working_width)
             try:
                 out = render(gaussians, cam)
             except RuntimeError as err:  # e.g. the scene does not fit the renderer's buffers
@@ -74,7 +88,12 @@ def render_depths(scene: SceneInput, config: ObserveConfig) -> tuple[list[np.nda
 
 
 def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tuple[SurfaceMesh, dict]:
-    """The surface to lift onto, and a record of where it came from."""
+    """The surface to lift onto, and a record of where it came from.
+
+    A splat-derived surface is fused from the depth of the Gaussians that pass the floater
+    rules (``observe/floaters.py``; counts in the record's ``floaters``) and snapped onto
+    their opaque centres. Raises ``SurfaceTooLargeError`` when its grid would exceed the
+    memory budget."""
     import trimesh
 
     use_mesh = config.surface_source == "mesh" or (config.surface_source == "auto" and scene.surface_mesh)
@@ -98,15 +117,18 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
         raise SceneInputError(scene.root, "surface", "no scan mesh and no way to build one (a splat-derived "
                               "surface needs the Gaussians and posed cameras; expected --surface PATH or "
                               "surface.ply, else point_cloud.ply with sparse/0/ or transforms.json)")
+    g, floaters = surface_gaussians(scene.gaussians, config.surface.floaters)
+    if g.num == 0:
+        raise SceneInputError(scene.root, "surface", f"every Gaussian was left out as a floater ({floaters}); "
+                              "expected some opaque ones (see observe.surface.floaters)")
     t0 = time.perf_counter()
-    depths, cams, failures = render_depths(scene, config)
+    depths, cams, failures = render_depths(scene, config, g)
     render_s = time.perf_counter() - t0
     if not depths:
         raise SceneInputError(scene.root, "surface", "no view could be rendered to build a splat-derived surface")
     surface = fuse_depths(depths, cams, config.surface)
     if config.surface.snap_radius > 0:
         t0 = time.perf_counter()
-        g = scene.gaussians
         opaque = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64))) >= config.surface.snap_min_opacity
         vertices, offset = snap_to_centres(surface.vertices, surface.faces, g.means[opaque].astype(np.float64),
                                            config.surface.snap_radius, config.surface.snap_neighbours)
@@ -117,8 +139,8 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
     data = surface.to_trimesh().export(file_type="ply")
     write_bytes(out_dir / "observe" / "surface.ply", data)
     record = {"kind": "splats", "path": "observe/surface.ply", "render_s": round(render_s, 4),
-              "failed_views": failures, **{k: (round(v, 4) if isinstance(v, float) else v)
-                                           for k, v in surface.info.items()}}
+              "render_size": [cams[0].width, cams[0].height], "failed_views": failures, "floaters": floaters,
+              **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in surface.info.items()}}
     return surface, record
 
 
@@ -136,7 +158,8 @@ def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
             scan = trimesh.load(scene.surface_mesh, force="mesh", process=False)
             vertex_labels, names = scannetpp_vertex_labels(scene.segments_anno, len(scan.vertices))
             record["annotations"] = str(scene.segments_anno)
-            return projected_masks(Raycaster(scene.to_world(scan.vertices), scan.faces), vertex_labels, scene.cameras, names,
+            return projected_masks(Raycaster(scene.to_world(scan.vertices), scan.faces, config.working_width),
+                                   vertex_labels, scene.cameras, names,
                                    "segments_anno"), "files"
         raise SceneInputError(scene.root / "masks", "--masks files",
                               "no masks/ folder and no ScanNet++ annotations (use --masks auto or a folder)")
@@ -278,7 +301,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
             masks = "files" if (scene.masks is not None or scene.segments_anno is not None) else "auto"
         with manifest.timed("observe.surface"):
             surface, surface_record = scene_surface(scene, config, out_dir)
-            raycaster = Raycaster(surface.vertices, surface.faces)
+            raycaster = Raycaster(surface.vertices, surface.faces, config.working_width)
         record: dict = {"surface": surface_record}
         with manifest.timed("observe.masks"):
             views, source = mask_views(scene, masks, raycaster, config, record, manifest.up())

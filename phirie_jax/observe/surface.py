@@ -7,7 +7,12 @@ with ~2 cm truncation, extract a mesh. Two backends give the same surface:
 - ``jax``: ``kernels.tsdf.fuse`` on a sparse grid of 8³-voxel blocks chosen on the host
   (those the truncation band of some depth sample reaches; the block count is padded
   to a power of two), then naive surface nets (``surface_nets``) on the host.
-- ``open3d``: Open3D's ``VoxelBlockGrid`` (tensor API) and its marching cubes.
+- ``open3d``: Open3D's ``VoxelBlockGrid`` (tensor API) and its marching cubes, run in a
+  child process (``phirie_jax.native``) so a crash in it is a ``NativeLibraryError``.
+
+Both grids are sized from the blocks the depth samples reach (``plan_grid``); a grid over
+``SurfaceConfig.memory_budget_gb`` is refused before it is allocated
+(``SurfaceTooLargeError``, naming the samples' bounds, the voxel and the block count).
 
 Then (ours, beyond the paper) each vertex is snapped along its normal onto the opaque
 Gaussian centres near it (``snap_to_centres``): alpha-composited depth of overlapping
@@ -77,29 +82,89 @@ def active_blocks(depths: list[np.ndarray], cameras: list[Camera], truncation: f
     Each sampled pixel marks the blocks at depth d + s·(truncation + one block diagonal step)
     for s on [−1, 1] in steps no longer than half a block, so the band is covered.
     """
+    return _band_blocks(depths, cameras, truncation, voxel, res, stride)[0]
+
+
+def _band_blocks(depths, cameras, truncation, voxel, res, stride):
+    """``active_blocks`` and the (2, 3) min/max of the depth samples (None when there are none)."""
     block = voxel * res
     reach = truncation + voxel  # a voxel centre within the band may sit in the next block
     steps = np.linspace(-1.0, 1.0, max(3, int(np.ceil(2 * reach / (0.5 * block))) + 1))
-    keys = []
+    keys, lo, hi = [], [], []
     for depth, cam in zip(depths, cameras):
         points, dirs = backproject(depth, cam, stride)
+        if len(points) == 0:
+            continue
+        lo.append(points.min(0))
+        hi.append(points.max(0))
         unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
         for s in steps:
             keys.append(np.unique(pack_keys(np.floor((points + s * reach * unit) / block))))
     if not keys:
-        return np.zeros((0, 3), np.int64)
-    return unpack_keys(np.unique(np.concatenate(keys)))
+        return np.zeros((0, 3), np.int64), None
+    return unpack_keys(np.unique(np.concatenate(keys))), np.stack([np.min(lo, 0), np.max(hi, 0)])
 
 
-def fuse_jax(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig):
-    """TSDF with ``kernels.tsdf``: block coords (B, 3), tsdf and weight (B, r, r, r), timings."""
+def bytes_per_block(config: SurfaceConfig) -> int:
+    """Estimated memory of one block of ``config.block``³ voxels while fusing (bytes).
+
+    open3d: tsdf and weight (float32 each) plus the hash map's key, index and bookkeeping
+    (~64 B). jax: the block's voxel centres (3 × float32), the running sum, count and outputs
+    (4 × float32) and per fused frame of a step the projected voxels' depth, pixel and TSDF
+    intermediates (~8 × float32).
+    """
+    voxels = config.block ** 3
+    if config.backend == "open3d":
+        return voxels * 8 + 64
+    return voxels * 4 * (3 + 4 + 8 * config.frames_per_step)
+
+
+def allocated_blocks(needed: int, backend: str) -> int:
+    """Blocks a backend allocates for ``needed`` active ones: the JAX grid pads to a power of
+    two; Open3D marks its own band per frame (it may reach a little past ours) and its hash
+    map gets twice the count, also a power of two."""
+    return bucket(2 * needed if backend == "open3d" else needed)
+
+
+@dataclasses.dataclass(frozen=True)
+class GridPlan:
+    """The sparse TSDF grid a set of depth maps needs, decided before allocating it."""
+
+    blocks: np.ndarray        # (B, 3) int64 block coordinates the truncation band reaches
+    bounds: np.ndarray | None  # (2, 3) min/max of the depth samples (world units)
+    bytes_needed: int          # estimate: allocated_blocks × bytes_per_block
+
+
+def plan_grid(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig) -> GridPlan:
+    """The blocks the depth reaches and their memory; raises ``SurfaceTooLargeError`` past
+    ``config.memory_budget_gb`` (a one-line message with the bounds, voxel and block count)."""
+    from phirie_jax.errors import SurfaceTooLargeError
+
+    blocks, bounds = _band_blocks(depths, cameras, config.truncation, config.voxel, config.block, stride=2)
+    needed = allocated_blocks(len(blocks), config.backend) * bytes_per_block(config)
+    budget = config.memory_budget_gb * 1e9
+    if needed > budget:
+        size = bounds[1] - bounds[0]
+        raise SurfaceTooLargeError(
+            None, "observe.surface",
+            f"the depth samples span {np.round(bounds[0], 2).tolist()} to {np.round(bounds[1], 2).tolist()} "
+            f"({' × '.join(f'{v:.3g}' for v in size)} units); at voxel {config.voxel:g} the {config.backend} TSDF "
+            f"needs {len(blocks):,} blocks of {config.block}³ (~{needed / 1e9:.1f} GB) > memory_budget_gb "
+            f"{config.memory_budget_gb:g} (is the scene in metres? else raise voxel/truncation or the budget)")
+    return GridPlan(blocks, bounds, int(needed))
+
+
+def fuse_jax(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig, plan: GridPlan | None = None):
+    """TSDF with ``kernels.tsdf``: block coords (B, 3), tsdf and weight (B, r, r, r), timings.
+
+    The grid is ``plan``'s blocks (``plan_grid``, which refuses a grid over the memory budget)."""
     import jax.numpy as jnp
 
     from kernels.tsdf import fuse
 
     res, step = config.block, config.frames_per_step
     t0 = time.perf_counter()
-    blocks = active_blocks(depths, cameras, config.truncation, config.voxel, res)
+    blocks = (plan or plan_grid(depths, cameras, config)).blocks
     padded = bucket(len(blocks))
     origins = np.zeros((padded, 3), np.float32)
     origins[: len(blocks)] = blocks * (config.voxel * res)
@@ -211,25 +276,49 @@ def _axis_quads(axis: int, coords: np.ndarray, values: np.ndarray, vertices: np.
     return quad
 
 
-def fuse_open3d(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig):
+def fuse_open3d(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig,
+                plan: GridPlan | None = None):
     """Open3D ``VoxelBlockGrid`` TSDF and its marching cubes: vertices, faces, info.
 
-    (The legacy ``ScalableTSDFVolume`` of the open3d 0.20 wheel returns empty meshes even
-    for Open3D's own RGB-D sample, so the tensor API is used.)
+    The grid holds ``plan``'s blocks with headroom (``plan_grid`` refuses a grid over the
+    memory budget before this allocates). Open3D runs in a child process
+    (``phirie_jax.native.run_isolated``): a crash in it raises ``NativeLibraryError``
+    instead of ending the pipeline. (The legacy ``ScalableTSDFVolume`` of the open3d 0.20
+    wheel returns empty meshes even for Open3D's own RGB-D sample, so the tensor API is used.)
     """
+    from phirie_jax.native import run_isolated
+
+    plan = plan or plan_grid(depths, cameras, config)
+    block_count = allocated_blocks(len(plan.blocks), "open3d")
+    Ks, poses = [], []
+    for cam in cameras:
+        K = cam.K.copy()
+        K[:2, 2] -= 0.5  # Open3D counts pixel centres at integers (see phirie_jax.io.rgbd)
+        Ks.append(K)
+        poses.append(cam.world_to_camera)
+    t0 = time.perf_counter()
+    vertices, faces, timings = run_isolated(
+        "Open3D", _open3d_tsdf, depths, np.stack(Ks), np.stack(poses), config, block_count,
+        description="VoxelBlockGrid fusion")
+    timings["child_s"] = time.perf_counter() - t0
+    return vertices, faces, {**timings, "blocks": len(plan.blocks), "block_count": block_count}
+
+
+def _open3d_tsdf(depths: list[np.ndarray], Ks: np.ndarray, poses: np.ndarray, config: SurfaceConfig,
+                 block_count: int):
+    """(In the child process.) Ks (F, 3, 3) with integer pixel centres, poses (F, 4, 4) world → camera."""
     import open3d as o3d
     import open3d.core as o3c
 
     t0 = time.perf_counter()
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32), attr_channels=((1), (1)),
-        voxel_size=config.voxel, block_resolution=config.block, block_count=1 << 16, device=o3c.Device("CPU:0"))
+        voxel_size=config.voxel, block_resolution=config.block, block_count=block_count,
+        device=o3c.Device("CPU:0"))
     multiplier = config.truncation / config.voxel
-    for depth, cam in zip(depths, cameras):
+    for depth, K, pose in zip(depths, Ks, poses):
         image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth, np.float32)))
-        K = cam.K.copy()
-        K[:2, 2] -= 0.5  # Open3D counts pixel centres at integers (see phirie_jax.io.rgbd)
-        K, extrinsic = o3c.Tensor(K, o3c.float64), o3c.Tensor(cam.world_to_camera, o3c.float64)
+        K, extrinsic = o3c.Tensor(K, o3c.float64), o3c.Tensor(pose, o3c.float64)
         coords = grid.compute_unique_block_coordinates(image, K, extrinsic, 1.0, config.depth_max,
                                                        trunc_voxel_multiplier=multiplier)
         grid.integrate(coords, image, K, extrinsic, 1.0, config.depth_max, trunc_voxel_multiplier=multiplier)
@@ -264,17 +353,23 @@ def snap_to_centres(vertices: np.ndarray, faces: np.ndarray, centres: np.ndarray
 
 
 def fuse_depths(depths: list[np.ndarray], cameras: list[Camera], config: SurfaceConfig) -> SurfaceMesh:
-    """Fuse depth maps (H, W) in metres (0 = no measurement) seen by ``cameras`` into a mesh."""
+    """Fuse depth maps (H, W) in metres (0 = no measurement) seen by ``cameras`` into a mesh.
+
+    Raises ``SurfaceTooLargeError`` (before allocating) when the grid would exceed
+    ``config.memory_budget_gb`` and ``NativeLibraryError`` when Open3D crashes."""
     depths = [np.where((d > 0) & (d <= config.depth_max) & np.isfinite(d), d, 0.0).astype(np.float32)
               for d in depths]
     if not depths or not any(np.any(d > 0) for d in depths):
         raise ValueError("no valid depth to fuse (every pixel empty or beyond depth_max)")
+    t0 = time.perf_counter()
+    plan = plan_grid(depths, cameras, config)
     info = {"backend": config.backend, "voxel": config.voxel, "truncation": config.truncation,
-            "frames": len(depths)}
+            "frames": len(depths), "depth_bounds": None if plan.bounds is None else np.round(plan.bounds, 4).tolist(),
+            "grid_gb": round(plan.bytes_needed / 1e9, 3), "plan_s": time.perf_counter() - t0}
     if config.backend == "open3d":
-        vertices, faces, timings = fuse_open3d(depths, cameras, config)
+        vertices, faces, timings = fuse_open3d(depths, cameras, config, plan)
     else:
-        blocks, tsdf, weight, timings = fuse_jax(depths, cameras, config)
+        blocks, tsdf, weight, timings = fuse_jax(depths, cameras, config, plan)
         t0 = time.perf_counter()
         vertices, faces = surface_nets(blocks, tsdf, weight, config.voxel, config.min_weight)
         timings["extract_s"] = time.perf_counter() - t0

@@ -158,3 +158,55 @@ def test_snapping_moves_a_biased_plane_onto_the_centres_and_leaves_the_rest():
     far = vertices[:, 0] > 0.22
     np.testing.assert_array_equal(moved[far], vertices[far])
     assert np.all(offset[far] == 0)
+
+
+def test_a_grid_over_the_memory_budget_is_refused_before_fusing(monkeypatch):
+    import phirie_jax.observe.surface as surface_mod
+    from phirie_jax.errors import SurfaceTooLargeError
+
+    def never(*args, **kwargs):
+        raise AssertionError("the grid was allocated")
+
+    monkeypatch.setattr(surface_mod, "fuse_open3d", never)
+    monkeypatch.setattr(surface_mod, "fuse_jax", never)
+    cams, _centre, _radius, depths = sphere_views()
+    for backend in ("open3d", "jax"):
+        config = SurfaceConfig(voxel=SPHERE_VOXEL, truncation=0.03, backend=backend, memory_budget_gb=1e-4)
+        with pytest.raises(SurfaceTooLargeError) as err:
+            fuse_depths(depths, cams, config)
+        message = str(err.value)
+        assert "\n" not in message and message.startswith("observe.surface: the depth samples span [")
+        assert f"at voxel {SPHERE_VOXEL:g} the {backend} TSDF needs" in message
+        assert "blocks of 8³" in message and "> memory_budget_gb 0.0001" in message
+    plan = surface_mod.plan_grid(depths, cams, SurfaceConfig(voxel=SPHERE_VOXEL, truncation=0.03))
+    # the samples lie on the sphere: their bounds are the sphere's visible part
+    assert np.all(plan.bounds[0] > _centre - _radius - 1e-6) and np.all(plan.bounds[1] < _centre + _radius + 1e-6)
+
+
+def sphere_gaussians(centre, radius, n=4000):
+    """Opaque grey Gaussians (4 mm, isotropic) on a sphere (a Fibonacci lattice)."""
+    from phirie_jax.types import GaussianSplatData
+
+    i = np.arange(n) + 0.5
+    z, phi = 1 - 2 * i / n, np.pi * (1 + 5**0.5) * i
+    r = np.sqrt(1 - z * z)
+    means = centre + radius * np.c_[r * np.cos(phi), r * np.sin(phi), z]
+    return GaussianSplatData(means=means.astype(np.float32), quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32),
+                             log_scales=np.full((n, 3), np.log(0.004), np.float32),
+                             opacity_logits=np.full(n, 4.0, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+
+
+def test_working_width_renders_smaller_and_gives_the_same_surface(tmp_path):
+    cams, centre, radius, _ = sphere_views()
+    cams = [c.scaled(2.0) for c in cams]  # 128×96 photos
+    scene = SceneInput(root=tmp_path, layout="gaussians", gaussians=sphere_gaussians(centre, radius),
+                       gaussians_path=None, cameras=tuple(cams))
+    surface = SurfaceConfig(voxel=SPHERE_VOXEL, truncation=0.03, snap_radius=0.0)
+    full, full_record = scene_surface(scene, ObserveConfig(working_width=0, surface=surface), tmp_path / "a")
+    half, half_record = scene_surface(scene, ObserveConfig(working_width=64, surface=surface), tmp_path / "b")
+    assert full_record["render_size"] == [128, 96] and half_record["render_size"] == [64, 48]
+    assert full_record["floaters"]["kept"] == 4000
+    _, dist, _ = trimesh.proximity.closest_point(full.to_trimesh(), half.vertices)
+    assert np.median(dist) < SPHERE_VOXEL
+    r = np.linalg.norm(half.vertices - centre, axis=1)
+    assert abs(np.median(r) - radius) < SPHERE_VOXEL

@@ -1,0 +1,114 @@
+"""Native code that may crash, run in a child process so a crash becomes a Python error.
+
+Open3D's ``VoxelBlockGrid`` and CoACD are C++ libraries: an overflow or an assertion in them
+ends the process with a signal (SIGSEGV, SIGABRT) and no traceback, after minutes of work.
+``run_isolated`` runs a picklable top-level function in a fresh interpreter
+(``sys.executable``) and returns its result; a child that dies raises
+``NativeLibraryError`` naming the library and the signal.
+
+A fresh interpreter rather than ``multiprocessing``: its spawn and forkserver start methods
+re-run the caller's main script in the child (a script without an ``if __name__ ==
+"__main__"`` guard would render the whole scene again there), and fork copies the parent's
+JAX threads. The call, its arguments and the result travel pickled through pipes (NumPy
+arrays included); the child's stdout and stderr are the parent's, so the library's own
+messages still reach the user. The cost is the interpreter's start and the imports of the
+function's module (measured in ``tests/observe/test_native.py``).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import signal as signal_mod
+import subprocess
+import sys
+import threading
+import traceback
+
+from phirie_jax.errors import NativeLibraryError
+
+# The child: the parent's import path first (so the function's module imports as it does
+# here), then the call from stdin; the answer goes to the file descriptor in argv[1].
+_BOOTSTRAP = ("import pickle, sys\n"
+              "stream = sys.stdin.buffer\n"
+              "sys.path[:0] = pickle.load(stream)\n"
+              "from phirie_jax.native import serve\n"
+              "serve(stream, int(sys.argv[1]))\n")
+
+
+def serve(stream, answer_fd: int) -> None:
+    """(In the child.) Read (fn, args, kwargs) from ``stream``, write ("ok", result) or
+    ("raised", (exception or None, traceback text)) to ``answer_fd``."""
+    try:
+        fn, args, kwargs = pickle.load(stream)
+        message = ("ok", fn(*args, **kwargs))
+    except BaseException as err:  # noqa: BLE001 — every failure goes back to the parent
+        text = "".join(traceback.format_exception(err))
+        try:
+            pickle.loads(pickle.dumps(err))  # some exceptions pickle but do not unpickle
+            message = ("raised", (err, text))
+        except Exception:  # noqa: BLE001 — such an exception travels as text
+            message = ("raised", (None, text))
+    with os.fdopen(answer_fd, "wb") as out:
+        pickle.dump(message, out, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def signal_name(returncode: int) -> str | None:
+    """'SIGSEGV' for the return code −11 of a process killed by signal 11; None otherwise."""
+    if returncode >= 0:
+        return None
+    try:
+        return signal_mod.Signals(-returncode).name
+    except ValueError:
+        return None
+
+
+def run_isolated(library: str, fn, *args, description: str | None = None, **kwargs):
+    """``fn(*args, **kwargs)`` in a child process; its result, or the exception it raised.
+
+    library: the native library ``fn`` calls (named in the error); description: what was
+    being done ("VoxelBlockGrid fusion"), also in the error. ``fn`` must be a top-level
+    function of an importable module. Raises ``NativeLibraryError`` when the child dies
+    (a signal, or an exit without an answer), e.g.
+    "Open3D VoxelBlockGrid fusion died with signal 11 (SIGSEGV)"; an exception that cannot
+    travel back comes as a RuntimeError with the child's traceback.
+    """
+    what = f"{description} " if description else ""
+    payload = pickle.dumps((fn, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)  # fails here, not in the child
+    read_fd, write_fd = os.pipe()
+    try:
+        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd)], stdin=subprocess.PIPE,
+                                 pass_fds=(write_fd,))
+    finally:
+        os.close(write_fd)  # the child holds the only writing end: its death reads as EOF here
+    chunks: list[bytes] = []
+    reader = threading.Thread(target=lambda: chunks.append(_read_all(read_fd)), daemon=True)
+    reader.start()  # drain the answer while the call is still being written (both may be large)
+    try:
+        with child.stdin:
+            pickle.dump(list(sys.path), child.stdin)
+            child.stdin.write(payload)
+    except BrokenPipeError:  # the child died before reading it all; its return code says why
+        pass
+    returncode = child.wait()
+    reader.join()
+    answer = chunks[0] if chunks else b""
+    if answer:
+        status, value = pickle.loads(answer)
+        if status == "ok":
+            return value
+        err, text = value
+        if err is not None:
+            raise err
+        raise RuntimeError(f"{library} {what}failed in its child process:\n{text}")
+    name = signal_name(returncode)
+    if name is not None:
+        raise NativeLibraryError(library, f"{what}died with signal {-returncode} ({name})", name)
+    if returncode < 0:
+        raise NativeLibraryError(library, f"{what}died with signal {-returncode}", f"signal {-returncode}")
+    raise NativeLibraryError(library, f"{what}exited with code {returncode} without a result")
+
+
+def _read_all(fd: int) -> bytes:
+    with os.fdopen(fd, "rb") as f:
+        return f.read()
