@@ -7,6 +7,7 @@ the CLI, the configs and their documentation never drift apart.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -147,7 +148,7 @@ def _print_timings(manifest: dict) -> None:
 
 def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            config: ObserveConfig = ObserveConfig()) -> None:
+            observe_width: int | None = None, config: ObserveConfig = ObserveConfig()) -> None:
     """Scene Observation alone (after the frame: up and metres): masks → first-hit lifting onto
     the surface → voxel association into object instances (manifest.json `instances`,
     observe/instance_<id>.npz).
@@ -174,7 +175,7 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            config: ConvertConfig = ConvertConfig()) -> None:
+            observe_width: int | None = None, config: ConvertConfig = ConvertConfig()) -> None:
     """Scene → interactive scene: frame (metres, +z up) → observe → objects → physics →
     background, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
     Gaussians, checks; collision, scene.xml, URDFs, drop tests; background.ply with the objects
@@ -187,8 +188,12 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: scene surface mesh to use instead of the one found.
         frame: the capture's up and scale, when known (else estimated and recorded).
+        observe_width: observation's working width in pixels, whatever the photos' size
+            (same as --config.observe.working-width; 0 = the photos' size).
         config: every stage's parameters (defaults: the paper's numbers).
     """
+    if observe_width is not None:
+        config = dataclasses.replace(config, observe=dataclasses.replace(config.observe, working_width=observe_width))
     manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None)
     _print_frame(manifest)
     _print_instances(manifest)
