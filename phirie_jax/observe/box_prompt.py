@@ -1,6 +1,8 @@
 """Instance masks from 3D box prompts: one labelled image per view, no segmenter needed.
 
-A box prompt is an axis-aligned box in the capture frame with an instance id. At each
+A box prompt is an axis-aligned box in the capture frame with an instance id (or, given a
+``rotation``, a box axis-aligned in a rotated frame: an oriented box, for an object against
+a wall that is not along the capture's axes). At each
 camera the source Gaussians are rendered; every pixel whose accumulated alpha is at least
 ``min_alpha`` is back-projected at its alpha-normalized depth (``depth / alpha``, the
 expected depth of what the pixel sees), and takes the id of the first box (in the order
@@ -31,11 +33,13 @@ MIN_ALPHA = 0.5  # a pixel with less accumulated opacity shows mostly nothing: n
 
 @dataclasses.dataclass(frozen=True)
 class BoxPrompt:
-    """One instance: the axis-aligned box ``lower`` (3,) … ``upper`` (3,), capture frame."""
+    """One instance: the box ``lower`` (3,) … ``upper`` (3,), axis-aligned in the capture frame,
+    or in the frame x_b = rotation @ x_c when ``rotation`` (3 × 3 nested tuples) is given."""
 
     id: int
     lower: tuple[float, float, float]
     upper: tuple[float, float, float]
+    rotation: tuple[tuple[float, float, float], ...] | None = None
 
     def __post_init__(self):
         if not 0 < int(self.id) < 65536:
@@ -45,6 +49,10 @@ class BoxPrompt:
             raise ValueError(f"box prompt {self.id}: expected finite 3-vectors, got {self.lower}, {self.upper}")
         if np.any(hi <= lo):
             raise ValueError(f"box prompt {self.id}: upper {tuple(hi)} must exceed lower {tuple(lo)} on every axis")
+        if self.rotation is not None:
+            rot = np.asarray(self.rotation, np.float64)
+            if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
+                raise ValueError(f"box prompt {self.id}: rotation must be a 3×3 proper rotation matrix")
 
     @staticmethod
     def from_corners(instance_id: int, corners: Sequence[float]) -> "BoxPrompt":
@@ -53,8 +61,10 @@ class BoxPrompt:
         return BoxPrompt(int(instance_id), tuple(c.min(0).tolist()), tuple(c.max(0).tolist()))
 
     def contains(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: which of the points (N, 3) lie in the box (faces included)."""
+        """(N,) bool: which of the points (N, 3) (capture frame) lie in the box (faces included)."""
         lo, hi = np.asarray(self.lower), np.asarray(self.upper)
+        if self.rotation is not None:
+            points = points @ np.asarray(self.rotation, np.float64).T
         return np.all((points >= lo) & (points <= hi), axis=-1)
 
 
@@ -66,11 +76,14 @@ class BoxMaskConfig:
         min_alpha: pixels with less rendered alpha get no label (their depth is mostly void).
         open_px: side of the square kernel of the morphological open (0 or 1 = none).
         close_px: side of the square kernel of the morphological close after it (0 or 1 = none).
+        min_component: connected pieces of an id smaller than this fraction of its largest piece
+            are dropped (haze in front of a wall lands in the box in patches); 0 keeps all.
     """
 
     min_alpha: float = MIN_ALPHA
     open_px: int = 3
     close_px: int = 5
+    min_component: float = 0.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +127,11 @@ def box_labels(depth: np.ndarray, alpha: np.ndarray, camera: Camera, boxes: Sequ
             binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((config.open_px,) * 2, np.uint8))
         if config.close_px > 1:
             binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, np.ones((config.close_px,) * 2, np.uint8))
+        if config.min_component > 0 and binary.any():
+            count, pieces, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+            area = stats[1:, cv2.CC_STAT_AREA]
+            keep = np.flatnonzero(area >= config.min_component * area.max()) + 1
+            binary = np.isin(pieces, keep).astype(np.uint8)
         out[(binary > 0) & (out == 0)] = box.id
     return out
 
