@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from phirie_jax.io.scene import load_scene
 from phirie_jax.observe.box_prompt import BoxPrompt
@@ -52,3 +53,23 @@ def test_box_prompt_reads_back_and_holds_the_head():
     g = load_scene(FOX).gaussians
     inside = box.contains(g.means.astype(np.float64))
     assert 0.1 < inside.mean() < 0.9   # the head, with wall around it
+
+
+FRAME_REASON = ("the fixture is in the capture's non-metric, tilted frame: observation's metric "
+                "constants (2 cm association voxels) find no instance until the scene-frame step "
+                "resolves metres and up (then enable)")
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason=FRAME_REASON)
+@pytest.mark.parametrize("masks", ["files", "auto"])
+def test_fixture_converts_to_a_scene_with_the_head(tmp_path, masks):
+    from phirie_jax.pipeline import run_convert
+
+    manifest = run_convert(FOX, tmp_path / "out", masks=masks)
+    assert manifest["instances"], "no instance observed"
+    accepted = [o for o in manifest["objects"] if o["status"] == "accepted"]
+    assert accepted, [o.get("reason") for o in manifest["objects"]]
+    assert manifest["background"]["removed"] > 0
+    frame = manifest.get("frame") or {}
+    assert frame.get("capture_to_world") is not None
