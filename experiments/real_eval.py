@@ -21,14 +21,14 @@
 4. Stage timings (manifest) and peak memory (getrusage, self and children).
 
 Prints the result as JSON and writes ``experiments/results/real_eval_<NAME>.json``.
-Frame options (``--up``, ``--scale``, ``--known-size``, ``--metric``) are handed to
-``run_convert`` when it takes them; ``--config.*`` options set the ``ConvertConfig``.
+Frame options (``--up``, ``--scale``, ``--known-size``, ``--known-distance``, ``--metric``) and
+``--config.*`` options are those of ``phirie convert``.
 """
 
 from __future__ import annotations
 
 import argparse
-import inspect
+import dataclasses
 import json
 import os
 import platform
@@ -41,13 +41,13 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.frame.resolve import world_camera
 from phirie_jax.io.scene import find_gaussians, load_scene
 from phirie_jax.observe.box_prompt import BoxPrompt, box_masks, encode_png
 from phirie_jax.types import Camera
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MIN_ALPHA = 0.5          # a rendered pixel belongs to an object's silhouette from this alpha
-FRAME_OPTIONS = ("up", "scale", "known_size", "metric")
 
 
 # --- the working copy ----------------------------------------------------------------------
@@ -125,19 +125,6 @@ def capture_to_world(manifest: dict) -> np.ndarray:
     """(4, 4) the manifest's ``frame.capture_to_world`` Sim(3); identity when there is none."""
     matrix = (manifest.get("frame") or {}).get("capture_to_world")
     return np.eye(4) if matrix is None else np.asarray(matrix, np.float64)
-
-
-def camera_in_world(camera: Camera, sim3: np.ndarray) -> Camera:
-    """The same camera for world points x_w = s R x_c + t (sim3 (4, 4)); depths become world units."""
-    import dataclasses
-
-    scale = float(np.cbrt(np.linalg.det(sim3[:3, :3])))
-    rot, t = sim3[:3, :3] / scale, sim3[:3, 3]
-    e_rot, e_t = camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]
-    w2c = np.eye(4)
-    w2c[:3, :3] = e_rot @ rot.T
-    w2c[:3, 3] = scale * e_t - e_rot @ rot.T @ t
-    return dataclasses.replace(camera, world_to_camera=w2c)
 
 
 def read_photo(camera: Camera, width: int | None) -> np.ndarray:
@@ -220,43 +207,27 @@ def held_out_masks(args, capture: Path, scene, held_out: list[Camera], boxes: li
 
 
 def convert_options(rest: list[str]):
-    """(ConvertConfig from ``--config.*``, frame keyword arguments for run_convert)."""
-    from phirie_jax.pipeline import ConvertConfig, run_convert
+    """(ConvertConfig from ``--config.*``, FrameConfig from the frame options), parsed like
+    ``phirie convert``'s."""
+    import tyro
 
-    frame, config_args, i = {}, [], 0
+    from phirie_jax.frame.config import FrameConfig
+    from phirie_jax.pipeline import ConvertConfig
+
+    frame_args, config_args, i = [], [], 0
     while i < len(rest):
         arg = rest[i]
+        target = config_args if arg.startswith("--config.") else frame_args
         if arg.startswith("--config."):
-            config_args += ["--" + arg[len("--config."):], rest[i + 1]] if "=" not in arg else ["--" + arg[9:]]
-            i += 1 if "=" in arg else 2
-            continue
-        key = arg.lstrip("-").replace("-", "_")
-        if key not in FRAME_OPTIONS:
-            raise SystemExit(f"real_eval: unknown option {arg!r}")
-        if key == "metric":
-            frame[key], i = True, i + 1
-            continue
-        values = []
+            arg = "--" + arg[len("--config."):]
+        target.append(arg)
         i += 1
         while i < len(rest) and not rest[i].startswith("--"):
-            values.append(rest[i])
+            target.append(rest[i])
             i += 1
-        if key == "known_size":
-            frame[key] = values
-        elif key == "up":
-            frame[key] = values[0] if len(values) == 1 else [float(v) for v in values]
-        else:
-            frame[key] = float(values[0])
-    accepted = inspect.signature(run_convert).parameters
-    missing = [k for k in frame if k not in accepted]
-    if missing:
-        raise SystemExit(f"real_eval: this run_convert takes no {missing} (the scene-frame step is not here yet)")
-    config = ConvertConfig()
-    if config_args:
-        import tyro
-
-        config = tyro.cli(ConvertConfig, args=config_args, default=config)
-    return config, frame
+    config = tyro.cli(ConvertConfig, args=config_args, default=ConvertConfig()) if config_args else ConvertConfig()
+    frame = tyro.cli(FrameConfig, args=frame_args, default=FrameConfig()) if frame_args else FrameConfig()
+    return config, frame.checked()
 
 
 def peak_memory_mb() -> dict:
@@ -289,7 +260,7 @@ def evaluate(args, rest: list[str]) -> dict:
     result: dict = {"capture": str(capture), "held_out": [c.name for c in held_out],
                     "training_views": len(training), "masks": str(masks),
                     "boxes": [{"id": b.id, "lower": b.lower, "upper": b.upper, "rotation": b.rotation} for b in boxes],
-                    "frame_options": frame_options, "out": str(out)}
+                    "frame_options": dataclasses.asdict(frame_options), "out": str(out)}
     try:
         copy = working_copy(capture, held_out, work / "capture")
         if boxes:
@@ -298,7 +269,7 @@ def evaluate(args, rest: list[str]) -> dict:
             result["box_masks_s"] = round(time.perf_counter() - t0, 2)
         t0 = time.perf_counter()
         try:
-            manifest = run_convert(copy, out, config, masks=masks, **frame_options)
+            manifest = run_convert(copy, out, config, masks=masks, frame=frame_options)
             result["convert"] = {"ok": True, "wall_s": round(time.perf_counter() - t0, 2)}
         except Exception as err:  # noqa: BLE001 — recorded: the source is still scored
             result["convert"] = {"ok": False, "wall_s": round(time.perf_counter() - t0, 2),
@@ -317,7 +288,7 @@ def evaluate(args, rest: list[str]) -> dict:
             row = {"view": cam.name, "source": image_scores(np.asarray(render(sources, cam, width=args.width).rgb),
                                                               photo)}
             if converted is not None:
-                world_cam = camera_in_world(cam, sim3)
+                world_cam = world_camera(cam, sim3)
                 row["converted"] = image_scores(np.asarray(render(converted, world_cam, width=args.width).rgb), photo)
                 row["difference_db"] = round(row["converted"]["psnr"] - row["source"]["psnr"], 3)
                 for object_id, g in placed.items():

@@ -26,7 +26,8 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
     """x_w = s R x_c + t: a point seen by the moved camera lands on the same pixel, s times deeper."""
     import numpy as np
 
-    from experiments.real_eval import camera_in_world, capture_to_world, held_out_split
+    from experiments.real_eval import capture_to_world, held_out_split
+    from phirie_jax.frame.resolve import world_camera
     from phirie_jax.geometry import rotation_to_z
     from phirie_jax.types import Camera
 
@@ -40,7 +41,7 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
     sim3[:3, 3] = [1.0, 2.0, -0.5]
     points = rng.normal(size=(20, 3))
     uv, depth = camera.project(points)
-    uv_w, depth_w = camera_in_world(camera, sim3).project(points @ sim3[:3, :3].T + sim3[:3, 3])
+    uv_w, depth_w = world_camera(camera, sim3).project(points @ sim3[:3, :3].T + sim3[:3, 3])
     assert np.allclose(uv, uv_w) and np.allclose(0.25 * depth, depth_w)
     assert np.array_equal(capture_to_world({}), np.eye(4))
     cams = tuple(Camera(f"{k:04d}.jpg", camera.K, w2c, 64, 48) for k in range(17))

@@ -110,3 +110,25 @@ def test_camera_votes_and_a_wall_without_support():
     found, source = estimate.estimate_up([wall], tuple(cameras))
     assert estimate.angle_deg(found, up) < 0.5 and source.startswith("cameras")
     assert estimate.estimate_scale([wall], found, tuple(cameras), 1.5 * 3)[1].startswith("cameras")
+
+
+def test_known_size_observes_again_at_the_corrected_scale(scenes, tmp_path):
+    """--known-size with the true longest side of object 1 recovers the capture's scale to within
+    what one-sided observation loses, and the instances are written at that scale."""
+    import json
+
+    from phirie_jax.frame.resolve import longest_side
+    from phirie_jax.io.mesh import load_trimesh
+    from phirie_jax.pipeline import run_convert
+
+    truth = json.loads((scenes[0] / "gt" / "objects.json").read_text())
+    first = next(o for o in truth if o["id"] == 1)
+    side = longest_side(load_trimesh(scenes[0] / first["mesh"]).vertices)
+    manifest = run_convert(scenes[1], tmp_path / "out", masks="files", stages=("observe",),
+                           frame=FrameConfig(known_size=f"1={side:.4f}"))
+    scale = manifest["frame"]["scale"] * UNITS_PER_METRE          # 1 when exact
+    assert 0.97 < scale < 1.12 and manifest["frame"]["scale_source"].startswith("given (--known-size 1=")
+    assert set(manifest["timings"]) >= {"frame", "observe"} and "objects" not in manifest["timings"]
+    record = next(i for i in manifest["instances"] if i["id"] == 1)
+    observed = np.load(tmp_path / "out" / record["points"])["points"]
+    assert longest_side(observed) < 0.5                           # metres, not capture units
