@@ -56,7 +56,8 @@ def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = Non
 
 
 def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
-          preset: Literal["tiny", "default", "large"] = "default") -> None:
+          preset: Literal["tiny", "default", "large"] = "default", fitted: bool = False,
+          fit_steps: int | None = None) -> None:
     """Write a procedural tabletop scene with ground truth, laid out like a real capture
     (INRIA PLY, transforms.json and COLMAP text, images, 16-bit instance masks, surface mesh, gt/).
 
@@ -64,15 +65,33 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
         out: output scene folder.
         seed: random seed; the same seed and preset give the same files.
         preset: tiny (tests, seconds), default (the demo), large (benchmarks).
+        fitted: replace the ideal Gaussians with a 3DGS fit of the rendered images (random
+            initialization, Adam, densification), like a real capture's; the ideal set is kept in
+            gt/ideal/ and how it was fitted in gt/fit.json.
+        fit_steps: with --fitted, the number of Adam steps (default: FitConfig.steps).
     """
+    import dataclasses
+
     from rich.console import Console
 
-    from phirie_jax.synthetic import synthesize
+    from phirie_jax.synthetic import PRESETS, synthesize
 
+    if fit_steps is not None and not fitted:
+        raise SceneInputError(None, "--fit-steps", "given without --fitted")
     with Console().status(f"synthesizing {preset} scene (seed {seed})"):
         scene = synthesize(out, preset=preset, seed=seed)
     print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
           f"{len(scene.cameras)} cameras")
+    if not fitted:
+        return
+    from phirie_jax.synthetic.fitted import FitConfig, fit_scene_folder
+
+    config = FitConfig() if fit_steps is None else dataclasses.replace(FitConfig(), steps=fit_steps)
+    with Console().status(f"fitting Gaussians to the images ({config.steps} steps)"):
+        result = fit_scene_folder(out, PRESETS[preset].background_rgb, config, seed=seed)
+    r = result.record
+    print(f"fitted {r['gaussians']:,} Gaussians in {r['first_step_s'] + r['loop_s']:.0f} s: "
+          f"train PSNR {r['train_psnr']:.2f} dB (gt/fit.json)")
 
 
 def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
