@@ -90,7 +90,7 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
     with Console().status(f"fitting Gaussians to the images ({config.steps} steps)"):
         result = fit_scene_folder(out, PRESETS[preset].background_rgb, config, seed=seed)
     r = result.record
-    print(f"fitted {r['gaussians']:,} Gaussians in {r['first_step_s'] + r['loop_s']:.0f} s: "
+    print(f"fitted {r['gaussians']:,} Gaussians in {r['wall_s']:.0f} s: "
           f"train PSNR {r['train_psnr']:.2f} dB (gt/fit.json)")
 
 

@@ -250,6 +250,7 @@ def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitCo
     rng = np.random.default_rng(seed)
     _, extent = scene_region(cameras)
     data = random_init(images, cameras, config, rng)
+    initial = data.num
     width, height = cameras[0].width, cameras[0].height
     Ks = jnp.asarray(np.stack([c.K for c in cameras]), jnp.float32)
     w2cs = jnp.asarray(np.stack([c.world_to_camera for c in cameras]), jnp.float32)
@@ -262,20 +263,24 @@ def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitCo
     grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
     order: list[int] = []
     losses, events, buckets = [], [], {size}
-    retries, first_s, t0 = 0, None, time.perf_counter()
+    retries, t0 = 0, time.perf_counter()
+    programs: set = set()
+    first_calls, later_calls = [], []  # seconds of steps that compiled their program, and of the others
     step = 0
     while step < config.steps:
         if not order:
             order = list(rng.permutation(len(cameras)))
+        key, t_step = (size, raster.capacity), time.perf_counter()
         out = _train_step(params, state, _learning_rates(config, extent, step), valid, _sh_mask(config, step),
                           Ks, w2cs, targets, jnp.int32(order[0]), bg, grad_sum, seen, config=raster,
                           dssim_weight=config.dssim_weight)
-        if bool(out[6]):  # overflow: the gradient is incomplete; grow and repeat the step
+        overflow = bool(out[6])  # waits for the step
+        (later_calls if key in programs else first_calls).append(time.perf_counter() - t_step)
+        programs.add(key)
+        if overflow:  # the gradient is incomplete; grow and repeat the step
             raster = _grow(raster, int(out[7]))
             retries += 1
             continue
-        if first_s is None:
-            first_s = time.perf_counter() - t0
         order.pop(0)
         params, state, loss, grad_sum, seen = out[:5]
         losses.append(float(loss))
@@ -292,17 +297,19 @@ def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitCo
             state = _carry_state(state, source, size)
             grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
             events.append({"step": step, "gaussians": host.num, **counts})
-    loop_s = time.perf_counter() - t0 - (first_s or 0.0)
+    wall_s = time.perf_counter() - t0
+    step_s = float(np.median(later_calls)) if later_calls else 0.0
 
     n = int(valid.sum())
     fitted = GaussianSplatData.from_kernel(jax.tree.map(lambda x: x[:n], params))
     fitted = fitted.subset(sigmoid(fitted.opacity_logits) >= config.min_opacity)
     psnrs = train_psnr(fitted, Ks, w2cs, targets, bg, width, height, raster)
-    record = {"steps": config.steps, "seed": seed, "gaussians": fitted.num, "initial_gaussians": int(
-        config.initial_points), "train_psnr": round(float(np.mean(psnrs)), 3),
+    record = {"steps": config.steps, "seed": seed, "gaussians": fitted.num, "initial_gaussians": initial, "train_psnr": round(float(np.mean(psnrs)), 3),
         "train_psnr_per_view": np.round(psnrs, 3).tolist(), "loss_first": losses[0], "loss_last": losses[-1],
         "densify": events, "buckets": sorted(buckets), "capacity": raster.capacity, "capacity_retries": retries,
-        "first_step_s": round(first_s or 0.0, 3), "loop_s": round(loop_s, 3),
+        "programs": len(programs), "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
+        "compile_s": round(sum(first_calls) - len(first_calls) * step_s, 3),  # first calls less a step each
+        "run_s": round(wall_s - sum(first_calls) + len(first_calls) * step_s, 3),
         "config": dataclasses.asdict(config)}
     return FitResult(fitted, record)
 
