@@ -74,24 +74,26 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
 
     from rich.console import Console
 
-    from phirie_jax.synthetic import PRESETS, synthesize
+    from phirie_jax.synthetic import synthesize
 
     if fit_steps is not None and not fitted:
         raise SceneInputError(None, "--fit-steps", "given without --fitted")
-    with Console().status(f"synthesizing {preset} scene (seed {seed})"):
-        scene = synthesize(out, preset=preset, seed=seed)
-    print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
-          f"{len(scene.cameras)} cameras")
     if not fitted:
-        return
-    from phirie_jax.synthetic.fitted import FitConfig, fit_scene_folder
+        with Console().status(f"synthesizing {preset} scene (seed {seed})"):
+            scene = synthesize(out, preset=preset, seed=seed)
+        print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
+              f"{len(scene.cameras)} cameras")
+    else:
+        from phirie_jax.synthetic.fitted import FitConfig, synthesize_fitted
 
-    config = FitConfig() if fit_steps is None else dataclasses.replace(FitConfig(), steps=fit_steps)
-    with Console().status(f"fitting Gaussians to the images ({config.steps} steps)"):
-        result = fit_scene_folder(out, PRESETS[preset].background_rgb, config, seed=seed)
-    r = result.record
-    print(f"fitted {r['gaussians']:,} Gaussians in {r['wall_s']:.0f} s: "
-          f"train PSNR {r['train_psnr']:.2f} dB (gt/fit.json)")
+        config = FitConfig() if fit_steps is None else dataclasses.replace(FitConfig(), steps=fit_steps)
+        with Console().status(f"synthesizing {preset} scene (seed {seed}) and fitting Gaussians to its images "
+                              f"({config.steps} steps)"):
+            scene, result = synthesize_fitted(out, preset, seed, config)
+        r = result.record
+        print(f"wrote {out}: {len(scene.objects)} objects, {r['gaussians']:,} fitted Gaussians "
+              f"({scene.capture.data.num:,} ideal ones in gt/ideal/), {len(scene.cameras)} cameras; "
+              f"fitted in {r['wall_s']:.0f} s to train PSNR {r['train_psnr']:.2f} dB (gt/fit.json)")
 
 
 def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,

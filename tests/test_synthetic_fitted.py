@@ -97,3 +97,18 @@ def test_scene_region_is_where_the_cameras_look():
     centre, extent = scene_region(scene.cameras)
     assert abs(centre[2] - (scene.furniture.table_top_z + 0.08)) < 0.1 and np.linalg.norm(centre[:2]) < 0.1
     assert 1.0 < extent < 2.5
+
+
+@pytest.mark.slow
+def test_fitted_tiny_scene_converts_with_every_object_accepted(tmp_path):
+    from phirie_jax.pipeline import run_convert
+    from phirie_jax.synthetic import synthesize
+    from phirie_jax.synthetic.fitted import fit_scene_folder
+
+    scene_dir = tmp_path / "scene"
+    scene = synthesize(scene_dir, preset="tiny", seed=SEED)
+    fit_scene_folder(scene_dir, PRESETS["tiny"].background_rgb, FitConfig(), seed=SEED)
+    manifest = run_convert(scene_dir, tmp_path / "out", masks=scene_dir / "masks")
+    statuses = {o["id"]: o["status"] for o in manifest["objects"]}
+    assert set(statuses) == {o.id for o in scene.objects}
+    assert set(statuses.values()) == {"accepted"}, [o for o in manifest["objects"] if o["status"] != "accepted"]

@@ -375,3 +375,13 @@ def _write_npy(path: Path, array: np.ndarray) -> None:
     np.save(buf, array)
     write_bytes(path, buf.getvalue())
 
+
+
+def synthesize_fitted(out_dir: str | Path, preset: str = "default", seed: int = 0,
+                      config: FitConfig = FitConfig()) -> tuple:
+    """``synthesize`` then ``fit_scene_folder`` (the fit seeded with the scene's seed).
+    Returns (the ``SyntheticScene``, the ``FitResult``)."""
+    from phirie_jax.synthetic.scene import PRESETS, synthesize
+
+    scene = synthesize(out_dir, preset=preset, seed=seed)
+    return scene, fit_scene_folder(out_dir, PRESETS[preset].background_rgb, config, seed=seed)
