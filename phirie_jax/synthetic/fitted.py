@@ -385,3 +385,22 @@ def synthesize_fitted(out_dir: str | Path, preset: str = "default", seed: int = 
 
     scene = synthesize(out_dir, preset=preset, seed=seed)
     return scene, fit_scene_folder(out_dir, PRESETS[preset].background_rgb, config, seed=seed)
+
+
+def ensure_synthesized(path: str | Path, preset: str, seed: int, fitted: bool = False,
+                       config: FitConfig = FitConfig()) -> Path:
+    """A synthesized (``fitted``: and fitted) folder at ``path``, made unless it is complete
+    (gt/objects.json, and gt/fit.json when fitted). For the evaluations in ``experiments/``."""
+    path = Path(path)
+    if not (path / "gt" / "objects.json").exists() or (fitted and not (path / "gt" / "fit.json").exists()):
+        from phirie_jax.synthetic.scene import synthesize
+
+        t0 = time.perf_counter()
+        if fitted:
+            _, result = synthesize_fitted(path, preset, seed, config)
+            print(f"synthesized and fitted {path} in {time.perf_counter() - t0:.1f} s "
+                  f"(train PSNR {result.record['train_psnr']:.2f} dB)", flush=True)
+        else:
+            synthesize(path, preset, seed)
+            print(f"synthesized {path} in {time.perf_counter() - t0:.1f} s", flush=True)
+    return path
