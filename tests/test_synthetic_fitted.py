@@ -16,7 +16,9 @@ from phirie_jax.synthetic.fitted import FitConfig, densify_and_prune, fit_gaussi
 from phirie_jax.types import GaussianSplatData
 
 TEST_STEPS = 150          # a shortened fit (the default is FitConfig.steps)
-MIN_TRAIN_PSNR = 24.0     # dB after TEST_STEPS; measured 26.9 (seed 3), a fit that does not learn stays < 15
+# dB after TEST_STEPS: measured 26.55 (views 24.96–28.76) for seed 3; the random initialization
+# scores 14.3, and 300 steps (the default) reach about 35
+MIN_TRAIN_PSNR = 24.0
 FLAT_RATIO = 0.2          # smallest / largest axis below this: a disk
 SEED = 3
 
@@ -67,10 +69,11 @@ def test_fitted_gaussians_are_not_the_ideal_ones(fitted_dir):
 
 def test_same_seed_same_fit(fitted_dir):
     images, cameras = read_training_views(fitted_dir)
-    config = FitConfig(steps=40, initial_points=1024, densify_interval=10)
+    # a short fit (densifying at steps 5 and 10) of the fixture's shapes: it reuses its compiled programs
+    config = FitConfig(steps=20, densify_interval=5)
     background = PRESETS["tiny"].background_rgb
-    a = fit_gaussians(images[:4], cameras[:4], config, seed=1, background=background)
-    b = fit_gaussians(images[:4], cameras[:4], config, seed=1, background=background)
+    a = fit_gaussians(images, cameras, config, seed=1, background=background)
+    b = fit_gaussians(images, cameras, config, seed=1, background=background)
     assert a.record["densify"], "the short fit densified"
     for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(a.gaussians, field), getattr(b.gaussians, field), err_msg=field)
