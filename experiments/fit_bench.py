@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import platform
 import tempfile
 import time
@@ -54,7 +55,8 @@ def main() -> None:
         "preset": args.preset, "seed": args.seed, "scene": str(args.scene) if args.scene else None,
         "views": len(cameras), "image": [cameras[0].width, cameras[0].height],
         "backend": jax.default_backend(), "device": str(jax.devices()[0]),
-        "machine": {"platform": platform.platform(), "processor": platform.processor()},
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                    "load_average_at_end": os.getloadavg()},
         "steps": r["steps"], "compile_s": r["compile_s"], "run_s": r["run_s"],
         "steps_per_s": round(1.0 / r["step_s_median"], 3) if r["step_s_median"] else None,
         "fit_total_s": round(total_s, 3), "synthesize_s": synth_s, "programs": r["programs"],
