@@ -111,7 +111,7 @@ def test_fitted_tiny_scene_converts_with_every_object_accepted(tmp_path):
     scene_dir = tmp_path / "scene"
     scene = synthesize(scene_dir, preset="tiny", seed=SEED)
     fit_scene_folder(scene_dir, PRESETS["tiny"].background_rgb, FitConfig(), seed=SEED)
-    manifest = run_convert(scene_dir, tmp_path / "out", masks=scene_dir / "masks")
+    manifest = run_convert(scene_dir, tmp_path / "out", masks="files")  # masks/: instance ids of every view
     statuses = {o["id"]: o["status"] for o in manifest["objects"]}
     assert set(statuses) == {o.id for o in scene.objects}
     assert set(statuses.values()) == {"accepted"}, [o for o in manifest["objects"] if o["status"] != "accepted"]
