@@ -29,6 +29,8 @@ assets against the ground-truth world meshes with no alignment, time per object 
 mean; every jitted program is compiled before the timed runs — the compile time is reported
 apart). Target: with evidence selection and retry, ≥ 95 % of the ground-truth-shaped external
 candidates are placed at F1@20 ≥ 0.9 whatever their up axis (``gt_candidates``).
+With ``--fitted`` a fourth set, ``synthetic_fitted``: the same synthetic scenes with their
+Gaussians fitted to the images (``phirie synth --fitted``, under ``--scene-root/eval<seed>_fitted``).
 Seed 100 of the synthetic scenes was used while developing; report only others.
 """
 
@@ -344,12 +346,17 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--rows", nargs="*", default=list(ROWS))
     parser.add_argument("--arc-deg", type=float, default=120.0, help="one-sided set: camera arc (0: skip)")
+    parser.add_argument("--fitted", action="store_true",
+                        help="also the synthetic scenes with fitted Gaussians (set synthetic_fitted)")
+    parser.add_argument("--fit-steps", type=int, default=None, help="with --fitted: Adam steps of the fit")
     args = parser.parse_args()
     if set(args.seeds) & set(DEV_SEEDS):
         print(f"warning: seeds {sorted(set(args.seeds) & set(DEV_SEEDS))} were used while developing", flush=True)
     configs = {name: ObjectsConfig(**ROWS[name]) for name in args.rows}
 
     sets: dict[str, list[tuple[Path, Path, dict]]] = {"synthetic": [], "synthetic_one_side": [], "ycb": []}
+    if args.fitted:
+        sets["synthetic_fitted"] = []
     for seed in args.seeds:
         src = args.scene_root / f"eval{seed}"
         if not (src / "gt" / "objects.json").exists():
@@ -365,6 +372,15 @@ def main() -> None:
             link_scene(src, side, keep_masks=one_side_masks(src, args.arc_deg, seed))
             (side / "candidates").symlink_to((scene / "candidates").resolve())
             sets["synthetic_one_side"].append((side, args.work / f"side{seed}" / "observed", truth))
+        if args.fitted:  # the same scene, its Gaussians fitted to its images (phirie synth --fitted)
+            from phirie_jax.synthetic.fitted import FitConfig, ensure_synthesized
+
+            config = FitConfig() if args.fit_steps is None else dataclasses.replace(FitConfig(), steps=args.fit_steps)
+            fitted_src = ensure_synthesized(args.scene_root / f"eval{seed}_fitted", "default", seed, True, config)
+            fitted_scene = args.work / f"fit{seed}" / "scene"
+            link_scene(fitted_src, fitted_scene)
+            sets["synthetic_fitted"].append((fitted_scene, args.work / f"fit{seed}" / "observed",
+                                             synthetic_candidates(fitted_scene, seed)))
     if YCB.is_dir():
         for seed in args.ycb_seeds:
             scene = args.work / f"ycb{seed}" / "scene"

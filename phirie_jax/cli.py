@@ -58,7 +58,8 @@ def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = Non
 
 
 def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
-          preset: Literal["tiny", "default", "large"] = "default") -> None:
+          preset: Literal["tiny", "default", "large"] = "default", fitted: bool = False,
+          fit_steps: int | None = None) -> None:
     """Write a procedural tabletop scene with ground truth, laid out like a real capture
     (INRIA PLY, transforms.json and COLMAP text, images, 16-bit instance masks, surface mesh, gt/).
 
@@ -66,15 +67,35 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
         out: output scene folder.
         seed: random seed; the same seed and preset give the same files.
         preset: tiny (tests, seconds), default (the demo), large (benchmarks).
+        fitted: replace the ideal Gaussians with a 3DGS fit of the rendered images (random
+            initialization, Adam, densification), like a real capture's; the ideal set is kept in
+            gt/ideal/ and how it was fitted in gt/fit.json.
+        fit_steps: with --fitted, the number of Adam steps (default: FitConfig.steps).
     """
+    import dataclasses
+
     from rich.console import Console
 
     from phirie_jax.synthetic import synthesize
 
-    with Console().status(f"synthesizing {preset} scene (seed {seed})"):
-        scene = synthesize(out, preset=preset, seed=seed)
-    print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
-          f"{len(scene.cameras)} cameras")
+    if fit_steps is not None and not fitted:
+        raise SceneInputError(None, "--fit-steps", "given without --fitted")
+    if not fitted:
+        with Console().status(f"synthesizing {preset} scene (seed {seed})"):
+            scene = synthesize(out, preset=preset, seed=seed)
+        print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
+              f"{len(scene.cameras)} cameras")
+    else:
+        from phirie_jax.synthetic.fitted import FitConfig, synthesize_fitted
+
+        config = FitConfig() if fit_steps is None else dataclasses.replace(FitConfig(), steps=fit_steps)
+        with Console().status(f"synthesizing {preset} scene (seed {seed}) and fitting Gaussians to its images "
+                              f"({config.steps} steps)"):
+            scene, result = synthesize_fitted(out, preset, seed, config)
+        r = result.record
+        print(f"wrote {out}: {len(scene.objects)} objects, {r['gaussians']:,} fitted Gaussians "
+              f"({scene.capture.data.num:,} ideal ones in gt/ideal/), {len(scene.cameras)} cameras; "
+              f"fitted in {r['wall_s']:.0f} s to train PSNR {r['train_psnr']:.2f} dB (gt/fit.json)")
 
 
 def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,

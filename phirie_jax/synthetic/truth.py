@@ -24,7 +24,10 @@ class BackgroundTruth:
 
 
 def background_truth(scene_dir: str | Path) -> BackgroundTruth:
-    """The truth of a ``phirie synth`` folder (it needs ``gt/background.ply`` and ``gt/labels.npy``)."""
+    """The truth of a ``phirie synth`` folder (it needs ``gt/background.ply`` and ``gt/labels.npy``).
+
+    In a fitted folder (``phirie synth --fitted``) the floaters and the hidden tabletop are those of
+    the ideal capture (``gt/ideal/``): the truth is the scene's, whatever Gaussians were fitted."""
     from scipy.spatial import cKDTree
 
 
@@ -32,9 +35,13 @@ def background_truth(scene_dir: str | Path) -> BackgroundTruth:
     capture = read_gaussian_ply(scene_dir / "point_cloud.ply")
     labels = np.load(scene_dir / "gt" / "labels.npy")
     background = read_gaussian_ply(scene_dir / "gt" / "background.ply")
-    d, _ = cKDTree(background.means).query(capture.means[labels == 0])
-    floaters = capture.subset(np.flatnonzero(labels == 0)[d > SAME_GAUSSIAN])
-    d_hidden, _ = cKDTree(capture.means).query(background.means)
+    ideal, ideal_labels = capture, labels
+    if (scene_dir / "gt" / "ideal" / "point_cloud.ply").exists():
+        ideal = read_gaussian_ply(scene_dir / "gt" / "ideal" / "point_cloud.ply")
+        ideal_labels = np.load(scene_dir / "gt" / "ideal" / "labels.npy")
+    d, _ = cKDTree(background.means).query(ideal.means[ideal_labels == 0])
+    floaters = ideal.subset(np.flatnonzero(ideal_labels == 0)[d > SAME_GAUSSIAN])
+    d_hidden, _ = cKDTree(ideal.means).query(background.means)
     hidden = np.concatenate([d_hidden > SAME_GAUSSIAN, np.zeros(floaters.num, bool)])
     return BackgroundTruth(capture, labels, GaussianSplatData.join([background, floaters], like=background), hidden)
 

@@ -1,0 +1,123 @@
+"""One step of 3DGS training: render a training view, photometric loss, Adam, densification statistics.
+
+This is the optimization a user's 3DGS trainer runs (Kerbl et al. 2023), for one view per step:
+
+    loss = (1 − λ) L1 + λ (1 − SSIM),  λ = 0.2
+
+Adam updates every Gaussian parameter with its own learning rate (``lrs``, a ``Gaussians`` of
+scalars or broadcastable arrays; the host decays the position rate). SH bands are switched on
+progressively through ``sh_mask``: coefficients of bands not yet on are zeroed before rendering,
+so they get no gradient and stay as they are.
+
+Densification needs each Gaussian's view-space positional gradient. The rasterizer does not expose
+the gradient at the projected mean, so it is recovered from the world gradient g of the mean: a
+one-pixel move on screen is a move of z / f in the camera's x–y plane, hence
+dL/du ≈ (z / fx) (R g)_x, dL/dv ≈ (z / fy) (R g)_y (exact for the mean's screen position,
+which dominates; the paths through depth, covariance and view direction are left out). It is
+reported in NDC units (× W/2, × H/2) like the reference implementation, so thresholds do not
+depend on the image size.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from kernels.gaussians import Gaussians
+from kernels.image_metrics import ssim
+from kernels.raster import RasterConfig, rasterize
+
+PAD_OPACITY_LOGIT = -1e4  # padding Gaussians: opacity 0, culled by the projection
+
+
+@functools.cache
+def optimizer():
+    """Adam with unit step (per-field rates are applied by ``train_step``); optax is imported here
+    so that ``import kernels`` needs only jax and numpy."""
+    import optax
+
+    return optax.chain(optax.scale_by_adam(eps=1e-15), optax.scale(-1.0))
+
+
+def init_state(params: Gaussians):
+    return optimizer().init(params)
+
+
+def photometric_loss(rendered: jax.Array, target: jax.Array, dssim_weight: float) -> jax.Array:
+    """() (1 − λ) mean |rendered − target| + λ (1 − SSIM). rendered (H, W, 3); target (H, W, 3)."""
+    l1 = jnp.mean(jnp.abs(rendered - target))
+    return (1.0 - dssim_weight) * l1 + dssim_weight * (1.0 - ssim(rendered, target))
+
+
+def masked_sh(params: Gaussians, valid: jax.Array, sh_mask: jax.Array) -> Gaussians:
+    """The Gaussians as rendered: SH bands not yet on zeroed, padding transparent.
+
+    valid (N,) bool; sh_mask (K, 1) 1 for the coefficients of bands that are on, else 0."""
+    return params.replace(sh=params.sh * sh_mask,
+                          opacity_logits=jnp.where(valid, params.opacity_logits, PAD_OPACITY_LOGIT))
+
+
+def view_loss(params: Gaussians, valid: jax.Array, sh_mask: jax.Array, K: jax.Array,
+              world_to_camera: jax.Array, background: jax.Array, target: jax.Array, *, config: RasterConfig,
+              dssim_weight: float):
+    """() photometric loss of one view; aux (radii (N,), overflow () bool, needed () int32).
+
+    valid (N,); sh_mask (K, 1); K (3, 3); world_to_camera (4, 4); background (3,); target (H, W, 3)."""
+    height, width = target.shape[0], target.shape[1]
+    out = rasterize(masked_sh(params, valid, sh_mask), K, world_to_camera, width=width, height=height,
+                    background=background, config=config)
+    return photometric_loss(out.rgb, target, dssim_weight), (out.radii, out.overflow, out.num_intersections)
+
+
+def screen_gradient(grad_means: jax.Array, means: jax.Array, K: jax.Array, world_to_camera: jax.Array,
+                    width: int, height: int) -> jax.Array:
+    """(N,) norm of the view-space positional gradient in NDC units (see the module docstring).
+
+    grad_means (N, 3) dL/d mean; means (N, 3); K (3, 3); world_to_camera (4, 4)."""
+    rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    z = means @ rot[2] + trans[2]                  # (N,) view depth
+    g_cam = grad_means @ rot.T                     # (N, 3) the gradient in camera axes
+    du = z / K[0, 0] * g_cam[:, 0] * (0.5 * width)
+    dv = z / K[1, 1] * g_cam[:, 1] * (0.5 * height)
+    return jnp.sqrt(du * du + dv * dv)
+
+
+def train_step(params: Gaussians, opt_state: Any, lrs: Gaussians, valid: jax.Array, sh_mask: jax.Array,
+               Ks: jax.Array, world_to_cameras: jax.Array, images: jax.Array, view: jax.Array,
+               background: jax.Array, grad_sum: jax.Array, seen: jax.Array, *, config: RasterConfig,
+               dssim_weight: float):
+    """One Adam step on view ``view`` of V training views.
+
+    params: N Gaussians (padding included); lrs: a ``Gaussians`` of per-field learning rates;
+    valid (N,) bool; sh_mask (K, 1); Ks (V, 3, 3); world_to_cameras (V, 4, 4); images (V, H, W, 3);
+    view () int32; background (3,); grad_sum (N,) and seen (N,) the densification statistics so far
+    (summed screen gradient, number of views a Gaussian was visible in).
+
+    Returns (params, opt_state, loss, grad_sum, seen, radii (N,), overflow, needed); the loss and
+    the diagnostics are of the params *before* the step. Jit with ``config`` and ``dssim_weight``
+    static. A step that overflowed must be discarded by the caller (its gradient is incomplete).
+    """
+    K, w2c, target = Ks[view], world_to_cameras[view], images[view]
+    (loss, (radii, overflow, needed)), grads = jax.value_and_grad(view_loss, has_aux=True)(
+        params, valid, sh_mask, K, w2c, background, target, config=config, dssim_weight=dssim_weight)
+    updates, opt_state = optimizer().update(grads, opt_state, params)
+    new_params = jax.tree.map(lambda p, u, lr: p + lr * u, params, updates, lrs)
+    visible = (radii > 0) & valid
+    g2 = screen_gradient(grads.means, params.means, K, w2c, target.shape[1], target.shape[0])
+    grad_sum = grad_sum + jnp.where(visible, g2, 0.0)
+    seen = seen + visible.astype(seen.dtype)
+    return new_params, opt_state, loss, grad_sum, seen, radii, overflow, needed
+
+
+def render_views(params: Gaussians, valid: jax.Array, Ks: jax.Array, world_to_cameras: jax.Array,
+                 background: jax.Array, *, width: int, height: int, config: RasterConfig):
+    """All V views with every SH band on. Returns rgb (V, H, W, 3) and overflow () bool.
+
+    valid (N,); Ks (V, 3, 3); world_to_cameras (V, 4, 4); background (3,)."""
+    g = masked_sh(params, valid, jnp.ones((params.sh.shape[1], 1), params.sh.dtype))
+    out = jax.lax.map(lambda kw: rasterize(g, kw[0], kw[1], width=width, height=height, background=background,
+                                           config=config), (Ks, world_to_cameras))
+    return out.rgb, jnp.any(out.overflow)
