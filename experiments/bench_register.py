@@ -27,7 +27,6 @@ of ``--repeats`` after a warm-up, ``block_until_ready``):
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import sys
@@ -38,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.report import emit
 from kernels.chamfer import build_grid, nearest_grid, nearest_sq  # noqa: E402
 from kernels.registration import UP_AXES, SearchSpec, axis_rotation, hypothesis_energy, icp, place, register, yaw_matrix  # noqa: E402
 
@@ -338,11 +338,7 @@ def main() -> None:
             "ratio_icp_same_work": result["icp"]["speedup_ours_over_open3d"]}
     elif "search" in result:
         result["vs_open3d_loop"] = {"skipped": o3d.get("skipped", "icp benchmark not run")}
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from experiments.report import emit
 from phirie_jax.construct.physics.collision import collision_from_mesh  # noqa: E402
 from phirie_jax.construct.physics.config import PhysicsConfig  # noqa: E402
 from phirie_jax.synthetic import shapes  # noqa: E402
@@ -52,10 +53,7 @@ def main() -> None:
         "threshold": config.coacd_threshold, "max_parts": config.max_parts,
         "max_hull_vertices": config.max_hull_vertices, "resolution": config.coacd_resolution,
         "mcts_iterations": config.coacd_mcts_iterations}, "summary": summary, "rows": rows}
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import tempfile
 import time
 from pathlib import Path
+
+from experiments.report import emit
 
 
 def main() -> None:
@@ -65,11 +66,7 @@ def main() -> None:
         "capacity": r["capacity"], "capacity_retries": r["capacity_retries"], "densify": r["densify"],
         "config": r["config"],
     }
-    text = json.dumps(out, indent=2)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(out, args.out)
 
 
 if __name__ == "__main__":

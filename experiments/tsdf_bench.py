@@ -14,13 +14,14 @@ voxel updates per second (voxels × frames / run time).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
+
+from experiments.report import emit
 
 
 def make(scene_dir: Path, out: Path) -> None:
@@ -118,11 +119,7 @@ def main() -> None:
     result = {"data": str(args.data), "scene": str(data["scene"]), "blocks": int(data["blocks"]),
               "machine": {"platform": platform.platform(), "processor": platform.processor()},
               "jax": time_jax(data, args.repeats), "open3d": time_open3d(data, args.repeats)}
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

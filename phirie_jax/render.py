@@ -62,6 +62,16 @@ def next_power_of_two(n: int) -> int:
     return 1 << max(0, int(n) - 1).bit_length()
 
 
+def grown_capacity(raster: RasterConfig, needed: int, advice: str) -> RasterConfig:
+    """``raster`` with room for ``needed`` tile intersections (at least twice its capacity, a power
+    of two); past ``MAX_CAPACITY`` a ``RuntimeError`` ending with ``advice``."""
+    capacity = max(2 * raster.capacity, next_power_of_two(needed))
+    if capacity > MAX_CAPACITY:
+        raise RuntimeError(f"{needed} tile intersections needed, more than the renderer's maximum "
+                           f"{MAX_CAPACITY}: {advice}")
+    return dataclasses.replace(raster, capacity=capacity)
+
+
 def gaussian_bucket(n: int) -> int:
     """Padded Gaussian count for n Gaussians."""
     return max(MIN_GAUSSIAN_BUCKET, next_power_of_two(n))

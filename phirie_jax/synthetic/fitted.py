@@ -42,7 +42,7 @@ from kernels.sh import num_sh_coeffs, rgb_to_sh_dc
 from phirie_jax.geometry import sigmoid
 from phirie_jax.io.atomic import write_bytes, write_text
 from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
-from phirie_jax.render import MAX_CAPACITY, gaussian_bucket, next_power_of_two
+from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
 from phirie_jax.types import Camera, GaussianSplatData
 
 LABEL_RADIUS = 0.02       # m: a fitted Gaussian takes the label of the nearest ideal one this close, else 0
@@ -235,11 +235,7 @@ _render_views = jax.jit(splat_fit.render_views, static_argnames=("width", "heigh
 
 
 def _grow(raster: RasterConfig, needed: int) -> RasterConfig:
-    capacity = max(2 * raster.capacity, next_power_of_two(needed))
-    if capacity > MAX_CAPACITY:
-        raise RuntimeError(f"the fit needs {needed} tile intersections, more than the renderer's maximum "
-                           f"{MAX_CAPACITY}: fit at a lower resolution or with fewer Gaussians")
-    return dataclasses.replace(raster, capacity=capacity)
+    return grown_capacity(raster, needed, "fit at a lower resolution or with fewer Gaussians")
 
 
 def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitConfig = FitConfig(), seed: int = 0,

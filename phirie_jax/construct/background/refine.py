@@ -23,7 +23,7 @@ from kernels.raster import RasterConfig
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.targets import Frame
 from phirie_jax.geometry import sigmoid
-from phirie_jax.render import MAX_CAPACITY, gaussian_bucket, next_power_of_two, pad_gaussians
+from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two, pad_gaussians
 from phirie_jax.types import GaussianSplatData
 
 MIN_CAPACITY = 1 << 14
@@ -225,8 +225,4 @@ def refine(disk_set: DiskSet, frames: list[Frame], config: BackgroundConfig, sh_
 
 
 def _grow(raster: RasterConfig, needed: int) -> RasterConfig:
-    capacity = max(2 * raster.capacity, next_power_of_two(needed))
-    if capacity > MAX_CAPACITY:
-        raise RuntimeError(f"the fill needs {needed} tile intersections, more than the renderer's maximum "
-                           f"{MAX_CAPACITY}: use a smaller crop size or a coarser grid")
-    return dataclasses.replace(raster, capacity=capacity)
+    return grown_capacity(raster, needed, "use a smaller crop size or a coarser grid")
