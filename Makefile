@@ -39,7 +39,8 @@ $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "needs $(PYTHON) (Python >= 3.11) on PATH"; exit 1; }
 	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	# the editable build's notice about same-named folders is for other layouts: silenced
+	PYTHONWARNINGS=ignore $(PY) -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
 clean:
