@@ -137,6 +137,26 @@ class Raycaster:
         pick = (r[:, None] * len(cast_cols) + c[None, :]).ravel()
         return Hits(hits.points[pick], hits.depth[pick], hits.face[pick], hits.bary[pick], hits.normal[pick]), rows, cols
 
+    def within(self, points: np.ndarray, radius: float) -> np.ndarray:
+        """(N,) bool: the (N, 3) points within ``radius`` of the surface or inside it (ray parity
+        over three rays; meant for closed meshes)."""
+        import open3d as o3d
+
+        if len(points) == 0:
+            return np.zeros(0, bool)
+        query = o3d.core.Tensor(np.asarray(points, np.float32))
+        near = self._scene.compute_distance(query).numpy() <= radius
+        return near | (self._scene.compute_occupancy(query, nsamples=3).numpy() > 0.5)
+
+    def seen_through(self, points: np.ndarray, camera: Camera, tolerance: float) -> np.ndarray:
+        """(N,) bool: the camera's ray through each (N, 3) point meets the surface more than
+        ``tolerance`` beyond it, i.e. the camera saw past the point (it is free space)."""
+        centre = camera.center
+        offset = np.asarray(points, np.float64) - centre
+        distance = np.linalg.norm(offset, axis=1)
+        hits = self.cast(np.broadcast_to(centre, offset.shape).copy(), offset / np.maximum(distance, 1e-12)[:, None])
+        return hits.depth > distance + tolerance   # misses (inf) count: the camera saw past it
+
     def depth_map(self, camera: Camera) -> np.ndarray:
         """(H, W) camera-z depth of the first hit per pixel, 0 where the ray misses."""
         hits, _, _ = self.cast_camera(camera)

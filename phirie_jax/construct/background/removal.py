@@ -88,20 +88,15 @@ def near_points(means: np.ndarray, points: np.ndarray, radius: float) -> np.ndar
 
 
 def near_surface(means: np.ndarray, vertices: np.ndarray, faces: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of ``means`` within ``radius`` of the triangle surface or inside it (R_asset; exact
-    point–triangle distances and inside-ness by ray parity, three rays, Open3D's ``RaycastingScene``)."""
-    import open3d as o3d
+    """Indices of ``means`` within ``radius`` of the triangle surface or inside it (R_asset;
+    ``Raycaster.within``)."""
+    from phirie_jax.observe.raycast import Raycaster
 
     box = np.stack([vertices.min(0) - radius, vertices.max(0) + radius])
     idx = _in_box(means, box)
     if len(idx) == 0 or len(faces) == 0:
         return np.zeros(0, np.int64)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    query = o3d.core.Tensor(means[idx].astype(np.float32))
-    near = scene.compute_distance(query).numpy() <= radius
-    inside = scene.compute_occupancy(query, nsamples=3).numpy() > 0.5
-    return idx[near | inside]
+    return idx[Raycaster(vertices, faces).within(means[idx], radius)]
 
 
 def read_mask(path: Path) -> np.ndarray:

@@ -6,8 +6,10 @@ can use ``mesh.obj`` as it is. ``visual.ply`` is in the same canonical frame.
 
 G_i: a candidate's own Gaussians placed by its registration (scale included, SH rotated);
 otherwise the object's captured Gaussians — centres within ``gaussian_radius`` of Q_i and
-of the placed mesh, above the support — moved into the canonical frame, plus new flat
-Gaussians on mesh regions no kept Gaussian covers, coloured from their nearest kept ones.
+near or inside the placed mesh, above the support — moved into the canonical frame, plus new
+flat Gaussians on mesh regions no kept Gaussian covers and no camera saw through (where a
+camera saw past a point of the mesh, the mesh is wrong there and a disk would hide the
+captured object), coloured from their nearest kept ones.
 """
 
 from __future__ import annotations
@@ -91,24 +93,23 @@ def _tangent_quats(normals: np.ndarray) -> np.ndarray:
     return np.roll(Rotation.from_matrix(frames).as_quat(), 1, axis=1)
 
 
-def captured_gaussians(scene_gaussians: GaussianSplatData, q_world: np.ndarray, mesh_points_world: np.ndarray,
+def captured_gaussians(scene_gaussians: GaussianSplatData, q_world: np.ndarray, placed_mesh,
                        height_above_support: np.ndarray, radius: float, clearance: float) -> np.ndarray:
-    """Indices of the scene's Gaussians that belong to this object (see the module docstring)."""
+    """Indices of the scene's Gaussians that belong to this object (see the module docstring);
+    ``placed_mesh`` is an ``observe.raycast.Raycaster`` of the mesh in the scene."""
     from scipy.spatial import cKDTree
 
     means = scene_gaussians.means.astype(np.float64)
     d_q, _ = cKDTree(q_world).query(means, distance_upper_bound=radius)
     near = np.isfinite(d_q) & (height_above_support > clearance)
     idx = np.flatnonzero(near)
-    if len(idx):
-        d_m, _ = cKDTree(mesh_points_world).query(means[idx], distance_upper_bound=radius)
-        idx = idx[np.isfinite(d_m)]
-    return idx
+    return idx[placed_mesh.within(means[idx], radius)] if len(idx) else idx
 
 
 def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatData, spacing: float,
-                   min_distance: float, neighbours: int, seed: int) -> tuple[GaussianSplatData, dict]:
-    """New flat Gaussians on the canonical mesh wherever no kept Gaussian is within ``min_distance``."""
+                   min_distance: float, neighbours: int, seed: int, seen_free=None) -> tuple[GaussianSplatData, dict]:
+    """New flat Gaussians on the canonical mesh wherever no kept Gaussian is within ``min_distance``
+    and, with ``seen_free`` ((P, 3) canonical points → (P,) bool), no camera saw through."""
     import trimesh
     from scipy.spatial import cKDTree
 
@@ -122,7 +123,10 @@ def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatD
         unseen = ~np.isfinite(d)
     else:
         unseen = np.ones(len(points), bool)
-    points, normals = points[unseen], normals[unseen]
+    free = np.zeros(len(points), bool)
+    if seen_free is not None and unseen.any():
+        free[unseen] = seen_free(points[unseen])
+    points, normals = points[unseen & ~free], normals[unseen & ~free]
     n = len(points)
     k_coeffs = kept.sh.shape[1] if kept.num else 1
     sh = np.zeros((n, k_coeffs, 3), np.float32)
@@ -139,6 +143,7 @@ def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatD
         log_scales=log_scales.astype(np.float32),
         opacity_logits=np.full(n, np.log(FILL_OPACITY / (1 - FILL_OPACITY)), np.float32), sh=sh)
     return data, {"samples": int(count), "unseen_fraction": float(unseen.mean()) if count else 0.0,
+                  "seen_through_fraction": float(free.mean()) if count else 0.0,
                   "coloured_from_neighbours": bool(kept.num)}
 
 

@@ -152,7 +152,7 @@ def _select(entries: list[dict], config: ObjectsConfig) -> dict | None:
 
 
 def _write_assets(chosen: dict, candidate: Candidate, inst: InstanceInput, q_world: np.ndarray, scene: SceneInput,
-                  config: ObjectsConfig, out_dir: Path) -> dict:
+                  config: ObjectsConfig, out_dir: Path, surface=None) -> dict:
     """``objects/<id>/mesh.obj`` (canonical) and ``visual.ply`` of the chosen candidate → the entry's
     asset fields."""
     m = chosen["gravity_matrix"]
@@ -160,7 +160,7 @@ def _write_assets(chosen: dict, candidate: Candidate, inst: InstanceInput, q_wor
     frame = assets.asset_frame(placed, inst.frame.matrix(), m)
     canon = placed - frame.base
     assets.write_obj(out_dir / layout.object_file(inst.id, layout.OBJECT_MESH), canon, candidate.faces)
-    splats, visual = _visual_gaussians(candidate, canon, frame, inst, q_world, scene, config)
+    splats, visual = _visual_gaussians(candidate, canon, frame, inst, q_world, scene, config, surface)
     if splats is not None:
         assets.write_visual(out_dir / layout.object_file(inst.id, layout.OBJECT_VISUAL), splats)
     return {"pose": frame.pose, "source_pose": inst.frame.matrix() @ m,
@@ -171,10 +171,13 @@ def _write_assets(chosen: dict, candidate: Candidate, inst: InstanceInput, q_wor
 
 
 def _visual_gaussians(candidate: Candidate, canon: np.ndarray, frame: assets.AssetFrame, inst: InstanceInput,
-                      q_world: np.ndarray, scene: SceneInput, config: ObjectsConfig
+                      q_world: np.ndarray, scene: SceneInput, config: ObjectsConfig, surface=None
                       ) -> tuple[GaussianSplatData | None, dict]:
     """The object's own Gaussians in its canonical frame: the candidate's when it brought some,
-    else the capture's around the placed surface plus fill disks where none were captured."""
+    else the capture's around the placed surface plus fill disks where none were captured and
+    (with the scene ``surface``, a ``Raycaster``) no camera saw through."""
+    from phirie_jax.observe.raycast import Raycaster
+
     visual: dict = {}
     if candidate.gaussians is not None:
         try:
@@ -186,14 +189,38 @@ def _visual_gaussians(candidate: Candidate, canon: np.ndarray, frame: assets.Ass
         return None, visual
     g = scene.gaussians
     height = inst.frame.to_gravity(g.means.astype(np.float64))[:, 2] - inst.support.height
-    surface = sample_model(canon, candidate.faces, config.registration.points, config.registration.seed)
-    surface_world = surface.astype(np.float64) @ frame.pose[:3, :3].T + frame.pose[:3, 3]
-    idx = assets.captured_gaussians(g, q_world, surface_world, height, config.gaussian_radius, config.base_clearance)
+    placed = Raycaster(canon @ frame.pose[:3, :3].T + frame.pose[:3, 3], candidate.faces)
+    idx = assets.captured_gaussians(g, q_world, placed, height, config.gaussian_radius, config.base_clearance)
     kept = assets.transform_splats(g.subset(idx), np.linalg.inv(frame.pose))
+    seen_free = None if surface is None else _seen_through(inst, surface, frame.pose, config.fill_min_distance)
     fill, fill_info = assets.fill_gaussians(canon, candidate.faces, kept, config.fill_spacing,
-                                            config.fill_min_distance, config.colour_neighbours, inst.id)
+                                            config.fill_min_distance, config.colour_neighbours, inst.id, seen_free)
     visual.update(source="captured", captured=int(kept.num), filled=int(fill.num), fill=fill_info)
     return (GaussianSplatData.join([kept, fill]) if kept.num else fill), visual
+
+
+def _seen_through(inst: InstanceInput, surface, pose: np.ndarray, tolerance: float):
+    """(P, 3) canonical points → (P,) bool: some view of the instance sees the point inside the
+    instance's mask and the scene surface more than ``tolerance`` beyond it."""
+    from phirie_jax.observe.masks import read_label_png
+
+    def seen_free(points: np.ndarray) -> np.ndarray:
+        world = points @ pose[:3, :3].T + pose[:3, 3]
+        free = np.zeros(len(points), bool)
+        for camera, path, label in zip(inst.cameras, inst.mask_paths, inst.labels):
+            try:
+                mask = read_label_png(path, camera) == label
+            except (SceneInputError, OSError, ValueError):
+                continue
+            uv, depth = camera.project(world)
+            col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+            ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < mask.shape[1]) & (row < mask.shape[0]) & ~free
+            ok[ok] &= mask[row[ok], col[ok]]
+            if ok.any():
+                free[np.flatnonzero(ok)] |= surface.seen_through(world[ok], camera, tolerance)
+        return free
+
+    return seen_free
 
 
 def _entry_for(instance_id: int, reason: str | None = None) -> dict:
@@ -219,9 +246,10 @@ def settle_candidates(entries: list[dict], pool: list[Candidate], up: np.ndarray
 
 def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
                      config: ObjectsConfig, out_dir: Path, manifest: Manifest,
-                     settle: Callable | None = None) -> dict:
+                     settle: Callable | None = None, surface=None) -> dict:
     """The manifest ``objects`` entry of one instance (writes its asset files when accepted).
-    With ``settle``, every candidate is drop-tested before ranking (settling check)."""
+    With ``settle``, every candidate is drop-tested before ranking (settling check); with the
+    scene ``surface`` (a ``Raycaster``), no fill disk goes where a camera saw through."""
     out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
@@ -244,7 +272,7 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
         return {**out, "status": "rejected", "reason": f"strict: failed checks {bad} on the best candidate"}
     candidate = next(c for c in pool if c.name == chosen["name"])
     with manifest.timed("objects.assets"):
-        files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir)
+        files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir, surface)
     return {**out, **files, "status": "accepted",
             "reason": None if not bad else f"kept with failed checks {bad} (use --strict to reject)"}
 
@@ -290,14 +318,15 @@ def _frame_and_supports(manifest: Manifest, loaded: list[_Observed], raycaster
 
 
 def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list[Support], scene: SceneInput,
-                    config: ObjectsConfig, out_dir: Path, manifest: Manifest, settle: Callable | None) -> list[dict]:
+                    config: ObjectsConfig, out_dir: Path, manifest: Manifest, settle: Callable | None,
+                    surface=None) -> list[dict]:
     """``construct_object`` of every instance; one object's failure is recorded, the rest go on."""
     objects = []
     for o, support in zip(loaded, supports):
         start = time.perf_counter()
         try:
             inst = _instance_input(o.record, o.points, o.data, frame, support, scene, out_dir)
-            entry = construct_object(o.record, o.points, inst, scene, config, out_dir, manifest, settle)
+            entry = construct_object(o.record, o.points, inst, scene, config, out_dir, manifest, settle, surface)
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
             entry = {**_entry_for(o.record["id"], f"{type(err).__name__}: {err}"),
                      "traceback": traceback.format_exc(limit=4)}
@@ -335,7 +364,8 @@ def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfi
         loaded, failures = _load_instances(manifest, out_dir)
         with manifest.timed("objects.supports"):
             frame, supports = _frame_and_supports(manifest, loaded, raycaster)
-        objects = failures + _construct_each(loaded, frame, supports, scene, config, out_dir, manifest, settle)
+        objects = failures + _construct_each(loaded, frame, supports, scene, config, out_dir, manifest, settle,
+                                             raycaster)
         _record(manifest, objects, surface_path, loaded, supports, config, out_dir)
     manifest.write()
     return manifest.data

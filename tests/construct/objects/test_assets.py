@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import trimesh
 
 from kernels.gaussians import Sim3, transform_gaussians
 from phirie_jax.construct.objects import assets
+from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.types import GaussianSplatData
 
 TOL = 2e-5
@@ -53,8 +55,8 @@ def test_captured_selection_and_fill_of_the_unseen_bottom():
     scene = GaussianSplatData(means, np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
                               np.full((n, 3), -6, np.float32), np.zeros(n, np.float32), sh)
     q = top_and_sides[::3]
-    mesh_points, _ = trimesh.sample.sample_surface(cube, 5000, seed=1)
-    idx = assets.captured_gaussians(scene, q, mesh_points, means[:, 2].astype(np.float64), 0.01, 0.003)
+    idx = assets.captured_gaussians(scene, q, Raycaster(cube.vertices, cube.faces), means[:, 2].astype(np.float64),
+                                    0.01, 0.003)
     assert set(idx.tolist()) <= set(range(len(top_and_sides)))        # no table, no floaters
     assert len(idx) > 0.95 * np.sum(top_and_sides[:, 2] > 0.003)
     kept = scene.subset(idx)
@@ -64,6 +66,10 @@ def test_captured_selection_and_fill_of_the_unseen_bottom():
     np.testing.assert_allclose(fill.sh[:, 0], np.tile([1.0, -1.0, 0.5], (fill.num, 1)), atol=1e-6)
     both = GaussianSplatData.join([kept, fill])
     assert both.num == kept.num + fill.num
+    # where a camera saw through the mesh, no disk: the bottom face "seen through" leaves nothing
+    none, info = assets.fill_gaussians(cube.vertices, cube.faces, kept, 0.005, 0.008, 4, 0,
+                                       seen_free=lambda p: p[:, 2] < 0.01)
+    assert none.num == 0 and info["seen_through_fraction"] == pytest.approx(info["unseen_fraction"])
 
 
 def test_stale_object_folders_go_and_folders_with_foreign_files_stay(tmp_path):
