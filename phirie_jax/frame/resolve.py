@@ -54,10 +54,6 @@ class SceneFrame:
         return dataclasses.replace(self, capture_to_world=sim3_matrix(scale, rotation, np.zeros(3)),
                                    scale_source=source, scale_uncertainty=uncertainty)
 
-    def points(self, points: np.ndarray) -> np.ndarray:
-        """(N, 3) capture points → (N, 3) world points."""
-        return np.asarray(points, np.float64) @ self.capture_to_world[:3, :3].T + self.capture_to_world[:3, 3]
-
     def apply(self, scene: SceneInput) -> SceneInput:
         """The scene in the world frame (the identity frame returns it as it is)."""
         return scene_in_world(scene, self.capture_to_world)
@@ -81,13 +77,11 @@ def scene_in_world(scene: SceneInput, capture_to_world: np.ndarray | None) -> Sc
         return scene
     if scene.capture_to_world is not None:
         raise ValueError("scene already moved into a world frame")
-    matrix = np.asarray(capture_to_world, np.float64)
-    points = None if scene.sparse_points is None else (
-        scene.sparse_points @ matrix[:3, :3].T + matrix[:3, 3])
+    moved = dataclasses.replace(scene, capture_to_world=np.asarray(capture_to_world, np.float64))
     return dataclasses.replace(
-        scene, gaussians=None if scene.gaussians is None else world_gaussians(scene.gaussians, matrix),
-        cameras=tuple(world_camera(c, matrix) for c in scene.cameras), sparse_points=points,
-        capture_to_world=matrix)
+        moved, gaussians=None if scene.gaussians is None else world_gaussians(scene.gaussians, moved.capture_to_world),
+        cameras=tuple(world_camera(c, moved.capture_to_world) for c in scene.cameras),
+        sparse_points=None if scene.sparse_points is None else moved.to_world(scene.sparse_points))
 
 
 def world_camera(camera: Camera, capture_to_world: np.ndarray) -> Camera:
