@@ -39,7 +39,6 @@ Seed 0 was used while developing; report only others.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -279,9 +278,9 @@ def main() -> None:
         "per_seed": per_seed,
     }
     if args.fitted:
-        from phirie_jax.synthetic.fitted import FitConfig
+        from phirie_jax.synthetic.fitted import fit_config_for
 
-        fit_config = FitConfig() if args.fit_steps is None else dataclasses.replace(FitConfig(), steps=args.fit_steps)
+        fit_config = fit_config_for("default", args.fit_steps)
         fitted = [evaluate_seed(s, args.scene_root, args.work, fit_config) for s in args.seeds]
         out["fitted"] = {"summary": _summary(fitted), "per_seed": fitted,
                          "fits": [json.loads((_scene(args.scene_root, s, fit_config) / "gt" / "fit.json").read_text())

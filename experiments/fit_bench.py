@@ -14,7 +14,6 @@ views), the Gaussian counts and the buckets.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import platform
 import tempfile
@@ -28,7 +27,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="tiny", choices=["tiny", "default", "large"])
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=None, help="Adam steps (default: FitConfig.steps)")
+    parser.add_argument("--steps", type=int, default=None, help="Adam steps (default: the preset's, FIT_PRESETS)")
     parser.add_argument("--scene", type=Path, default=None, help="a synthesized folder to fit instead")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
@@ -36,9 +35,9 @@ def main() -> None:
     import jax
 
     from phirie_jax.synthetic import PRESETS, synthesize
-    from phirie_jax.synthetic.fitted import FitConfig, fit_gaussians, read_training_views
+    from phirie_jax.synthetic.fitted import fit_config_for, fit_gaussians, read_training_views
 
-    config = FitConfig() if args.steps is None else dataclasses.replace(FitConfig(), steps=args.steps)
+    config = fit_config_for(args.preset, args.steps)
     with tempfile.TemporaryDirectory() as tmp:
         scene_dir = args.scene
         synth_s = None

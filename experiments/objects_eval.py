@@ -373,9 +373,9 @@ def main() -> None:
             (side / "candidates").symlink_to((scene / "candidates").resolve())
             sets["synthetic_one_side"].append((side, args.work / f"side{seed}" / "observed", truth))
         if args.fitted:  # the same scene, its Gaussians fitted to its images (phirie synth --fitted)
-            from phirie_jax.synthetic.fitted import FitConfig, ensure_synthesized
+            from phirie_jax.synthetic.fitted import ensure_synthesized, fit_config_for
 
-            config = FitConfig() if args.fit_steps is None else dataclasses.replace(FitConfig(), steps=args.fit_steps)
+            config = fit_config_for("default", args.fit_steps)
             fitted_src = ensure_synthesized(args.scene_root / f"eval{seed}_fitted", "default", seed, True, config)
             fitted_scene = args.work / f"fit{seed}" / "scene"
             link_scene(fitted_src, fitted_scene)

@@ -31,9 +31,9 @@ DEV_SEEDS = (100, 101)
 
 
 def _scene(root: Path, seed: int, preset: str, fitted: bool = False, fit_steps: int | None = None) -> Path:
-    from phirie_jax.synthetic.fitted import FitConfig, ensure_synthesized
+    from phirie_jax.synthetic.fitted import ensure_synthesized, fit_config_for
 
-    config = FitConfig() if fit_steps is None else dataclasses.replace(FitConfig(), steps=fit_steps)
+    config = fit_config_for(preset, fit_steps)
     return ensure_synthesized(root / (f"eval{seed}_fitted" if fitted else f"eval{seed}"), preset, seed, fitted, config)
 
 

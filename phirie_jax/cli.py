@@ -70,9 +70,8 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
         fitted: replace the ideal Gaussians with a 3DGS fit of the rendered images (random
             initialization, Adam, densification), like a real capture's; the ideal set is kept in
             gt/ideal/ and how it was fitted in gt/fit.json.
-        fit_steps: with --fitted, the number of Adam steps (default: FitConfig.steps).
+        fit_steps: with --fitted, the number of Adam steps (default: the preset's, FIT_PRESETS).
     """
-    import dataclasses
 
     from rich.console import Console
 
@@ -86,9 +85,9 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
         print(f"wrote {out}: {len(scene.objects)} objects, {scene.capture.data.num:,} Gaussians, "
               f"{len(scene.cameras)} cameras")
     else:
-        from phirie_jax.synthetic.fitted import FitConfig, synthesize_fitted
+        from phirie_jax.synthetic.fitted import fit_config_for, synthesize_fitted
 
-        config = FitConfig() if fit_steps is None else dataclasses.replace(FitConfig(), steps=fit_steps)
+        config = fit_config_for(preset, fit_steps)
         with Console().status(f"synthesizing {preset} scene (seed {seed}) and fitting Gaussians to its images "
                               f"({config.steps} steps)"):
             scene, result = synthesize_fitted(out, preset, seed, config)

@@ -85,6 +85,27 @@ class FitConfig:
     max_scale: float = 0.1           # × extent: pruned above (largest axis)
 
 
+# Each synthetic preset's fit: about 100 Adam steps per training view, the SH bands and the
+# densification on the same fractions of the schedule, room for the Gaussian counts a trainer
+# reaches at that image size. ``tiny`` is the class default (tests); ``default`` is fitted on a GPU
+# (``experiments/fit_scenes.py``) and its result reproduced by its seed.
+FIT_PRESETS = {
+    "tiny": FitConfig(),
+    "default": FitConfig(steps=3600, initial_points=16384, max_gaussians=65536, sh_band_interval=300,
+                         densify_interval=50),
+    "large": FitConfig(steps=6000, initial_points=65536, max_gaussians=524288, sh_band_interval=500,
+                       densify_interval=100),
+}
+
+
+def fit_config_for(preset: str, steps: int | None = None) -> FitConfig:
+    """The fit of a synthetic preset (``FIT_PRESETS``), with ``steps`` Adam steps if given."""
+    if preset not in FIT_PRESETS:
+        raise ValueError(f"no fit for preset {preset!r} (expected one of {sorted(FIT_PRESETS)})")
+    config = FIT_PRESETS[preset]
+    return config if steps is None else dataclasses.replace(config, steps=steps)
+
+
 @dataclasses.dataclass(frozen=True)
 class FitResult:
     gaussians: GaussianSplatData  # the fitted set (SH degree ``config.sh_degree``)
@@ -304,7 +325,8 @@ def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitCo
     record = {"steps": config.steps, "seed": seed, "gaussians": fitted.num, "initial_gaussians": initial, "train_psnr": round(float(np.mean(psnrs)), 3),
         "train_psnr_per_view": np.round(psnrs, 3).tolist(), "loss_first": losses[0], "loss_last": losses[-1],
         "densify": events, "buckets": sorted(buckets), "capacity": raster.capacity, "capacity_retries": retries,
-        "programs": len(programs), "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
+        "programs": len(programs), "backend": jax.default_backend(), "device": str(jax.devices()[0]),
+        "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
         "compile_s": round(sum(first_calls) - len(first_calls) * step_s, 3),  # first calls less a step each
         "run_s": round(wall_s - sum(first_calls) + len(first_calls) * step_s, 3),
         "config": dataclasses.asdict(config)}
@@ -343,13 +365,25 @@ def read_training_views(scene_dir: Path) -> tuple[list[np.ndarray], list[Camera]
 def fit_scene_folder(scene_dir: str | Path, background, config: FitConfig = FitConfig(), seed: int = 0
                      ) -> FitResult:
     """Replace a synthesized folder's ideal Gaussians with fitted ones (module docstring)."""
-    from scipy.spatial import cKDTree
 
     scene_dir = Path(scene_dir)
     if (scene_dir / "gt" / "fit.json").exists():
         raise ValueError(f"{scene_dir}: its Gaussians are already fitted (gt/fit.json)")
     images, cameras = read_training_views(scene_dir)
     result = fit_gaussians(images, cameras, config, seed, background)
+    install_fit(scene_dir, result)
+    return result
+
+
+def install_fit(scene_dir: str | Path, result: FitResult) -> None:
+    """Make a synthesized folder's capture the fitted set: the ideal Gaussians and labels move to
+    gt/ideal/, the fitted ones are labelled by the nearest ideal Gaussian, gt/fit.json records the
+    fit. Also for a fit made elsewhere (a GPU host) of the same preset and seed."""
+    from scipy.spatial import cKDTree
+
+    scene_dir = Path(scene_dir)
+    if (scene_dir / "gt" / "fit.json").exists():
+        raise ValueError(f"{scene_dir}: its Gaussians are already fitted (gt/fit.json)")
     ideal = read_gaussian_ply(scene_dir / "point_cloud.ply")
     ideal_labels = np.load(scene_dir / "gt" / "labels.npy")
     write_gaussian_ply(scene_dir / "gt" / "ideal" / "point_cloud.ply", ideal)
@@ -358,11 +392,10 @@ def fit_scene_folder(scene_dir: str | Path, background, config: FitConfig = FitC
     _write_npy(scene_dir / "gt" / "labels.npy",
                np.where(dist <= LABEL_RADIUS, ideal_labels[nearest], 0).astype(ideal_labels.dtype))
     r = result.record
-    comment = (f"comment phirie fitted: {r['steps']} steps, seed {seed}, {r['gaussians']} Gaussians, "
+    comment = (f"comment phirie fitted: {r['steps']} steps, seed {r['seed']}, {r['gaussians']} Gaussians, "
                f"train PSNR {r['train_psnr']:.2f} dB (gt/fit.json)")
     write_gaussian_ply(scene_dir / "point_cloud.ply", dataclasses.replace(result.gaussians, comments=(comment,)))
     write_text(scene_dir / "gt" / "fit.json", json.dumps(r, indent=2))
-    return result
 
 
 def _write_npy(path: Path, array: np.ndarray) -> None:
@@ -375,20 +408,23 @@ def _write_npy(path: Path, array: np.ndarray) -> None:
 
 
 def synthesize_fitted(out_dir: str | Path, preset: str = "default", seed: int = 0,
-                      config: FitConfig = FitConfig()) -> tuple:
-    """``synthesize`` then ``fit_scene_folder`` (the fit seeded with the scene's seed).
-    Returns (the ``SyntheticScene``, the ``FitResult``)."""
+                      config: FitConfig | None = None) -> tuple:
+    """``synthesize`` then ``fit_scene_folder`` (the fit seeded with the scene's seed; ``config``
+    defaults to the preset's, ``FIT_PRESETS``). Returns (the ``SyntheticScene``, the ``FitResult``)."""
     from phirie_jax.synthetic.scene import PRESETS, synthesize
 
+    config = fit_config_for(preset) if config is None else config
     scene = synthesize(out_dir, preset=preset, seed=seed)
     return scene, fit_scene_folder(out_dir, PRESETS[preset].background_rgb, config, seed=seed)
 
 
 def ensure_synthesized(path: str | Path, preset: str, seed: int, fitted: bool = False,
-                       config: FitConfig = FitConfig()) -> Path:
-    """A synthesized (``fitted``: and fitted) folder at ``path``, made unless it is complete
-    (gt/objects.json, and gt/fit.json when fitted). For the evaluations in ``experiments/``."""
+                       config: FitConfig | None = None) -> Path:
+    """A synthesized (``fitted``: and fitted, by ``config`` or the preset's fit) folder at
+    ``path``, made unless it is complete (gt/objects.json, and gt/fit.json when fitted). For the
+    evaluations in ``experiments/``."""
     path = Path(path)
+    config = fit_config_for(preset) if config is None else config
     if not (path / "gt" / "objects.json").exists() or (fitted and not (path / "gt" / "fit.json").exists()):
         from phirie_jax.synthetic.scene import synthesize
 
