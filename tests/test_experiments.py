@@ -47,3 +47,44 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
     cams = tuple(Camera(f"{k:04d}.jpg", camera.K, w2c, 64, 48) for k in range(17))
     train, held = held_out_split(cams, 8)
     assert [c.name for c in held] == ["0000.jpg", "0008.jpg", "0016.jpg"] and len(train) == 14
+
+
+def test_discovery_scores_count_phantoms_and_match_one_to_one():
+    """Issue 14's definition: an accepted object matching no true object at F1@20 ≥ 0.9 is a phantom;
+    one true object matches one accepted object at most."""
+    import numpy as np
+
+    from experiments.discovery_eval import scores
+
+    f1_20 = np.array([[0.95, 0.92, 0.10, 0.0],    # true 0: two bodies fit it; only one matches
+                      [0.10, 0.05, 0.91, 0.0],    # true 1: matched
+                      [0.00, 0.00, 0.20, 0.85]])  # true 2: its body is too poor a shape
+    f1_40 = np.where(f1_20 > 0.5, 1.0, f1_20)
+    s = scores(f1_20, f1_40)
+    assert (s["objects"], s["accepted"], s["matched"], s["phantoms"]) == (3, 4, 2, 2)
+    assert s["recall"] == round(2 / 3, 4) and s["precision"] == 0.5
+    assert s["located"] == 3 and s["matches"] == [(0, 0), (1, 2)]
+    none = scores(np.zeros((3, 0)), np.zeros((3, 0)))
+    assert none["recall"] == 0.0 and none["precision"] is None and none["phantoms"] == 0
+
+
+def test_fit_export_round_trips_and_installs(tmp_path):
+    """A fit exported on one machine is the same set when read back here."""
+    import numpy as np
+
+    from experiments.fit_scenes import export_fit, read_fit
+    from phirie_jax.synthetic.fitted import FitResult
+    from phirie_jax.types import GaussianSplatData
+
+    rng = np.random.default_rng(0)
+    n = 7
+    data = GaussianSplatData(means=rng.normal(size=(n, 3)).astype(np.float32),
+                             quats=rng.normal(size=(n, 4)).astype(np.float32),
+                             log_scales=rng.normal(size=(n, 3)).astype(np.float32),
+                             opacity_logits=rng.normal(size=n).astype(np.float32),
+                             sh=rng.normal(size=(n, 16, 3)).astype(np.float32))
+    export_fit(tmp_path / "fit_tiny_3.npz", FitResult(data, {"seed": 3, "steps": 5, "device": "cuda:0"}))
+    back = read_fit(tmp_path / "fit_tiny_3.npz")
+    assert back.record == {"seed": 3, "steps": 5, "device": "cuda:0"}
+    for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert np.array_equal(getattr(back.gaussians, field), getattr(data, field))

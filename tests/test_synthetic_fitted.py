@@ -115,3 +115,18 @@ def test_fitted_tiny_scene_converts_with_every_object_accepted(tmp_path):
     statuses = {o["id"]: o["status"] for o in manifest["objects"]}
     assert set(statuses) == {o.id for o in scene.objects}
     assert set(statuses.values()) == {"accepted"}, [o for o in manifest["objects"] if o["status"] != "accepted"]
+
+
+def test_every_preset_has_its_fit_and_steps_override_it():
+    import pytest
+
+    from phirie_jax.synthetic.fitted import FIT_PRESETS, FitConfig, fit_config_for
+    from phirie_jax.synthetic.scene import PRESETS
+
+    assert set(FIT_PRESETS) == set(PRESETS) and fit_config_for("tiny") == FitConfig()
+    tiny, default = fit_config_for("tiny"), fit_config_for("default")
+    per_view = {name: fit_config_for(name).steps / PRESETS[name].num_cameras for name in ("tiny", "default")}
+    assert per_view["default"] >= per_view["tiny"] and default.max_gaussians > tiny.max_gaussians
+    assert fit_config_for("default", 12).steps == 12 and fit_config_for("default", 12).max_gaussians == default.max_gaussians
+    with pytest.raises(ValueError, match="no fit for preset"):
+        fit_config_for("huge")
