@@ -88,3 +88,22 @@ def test_fit_export_round_trips_and_installs(tmp_path):
     assert back.record == {"seed": 3, "steps": 5, "device": "cuda:0"}
     for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         assert np.array_equal(getattr(back.gaussians, field), getattr(data, field))
+
+
+def test_convert_scale_counts_the_memory_of_descendants():
+    """A parent holding little, its grandchild 200 MB: the tree's resident memory holds both."""
+    import time
+
+    from experiments.convert_scale import tree_rss_bytes
+
+    hold = "import time; b = bytearray(200_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(30)"
+    parent = subprocess.Popen(["bash", "-c", f"{sys.executable} -c \"{hold}\"; true"])
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and tree_rss_bytes(parent.pid) < 200_000_000:
+            time.sleep(0.2)
+        assert tree_rss_bytes(parent.pid) >= 200_000_000
+    finally:
+        subprocess.run(["pkill", "-P", str(parent.pid)])
+        parent.kill()
+        parent.wait()

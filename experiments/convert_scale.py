@@ -1,0 +1,118 @@
+"""Conversion at a capture's real size: wall time per stage and peak memory of the whole process
+tree, for a capture as users bring it (no scan mesh, no masks: ``--masks auto``).
+
+    python -m experiments.convert_scale --preset large --seed 11 --scene /tmp/large_scene \\
+        --work /tmp/convert_scale --out experiments/results/convert_scale_cpu.json
+
+The scene (a ``phirie synth`` folder, synthesized at ``--scene`` when missing) is linked as a
+user's capture: ``point_cloud.ply``, ``images/``, ``transforms.json`` and ``sparse/`` only (no
+``surface.ply``, ``masks/``, ``gt/`` or ``frame.json``: up and scale are estimated). ``phirie
+convert`` runs in a child process; every ``--sample-s`` the resident memory of it and all its
+descendants is summed from /proc (CoACD workers and Open3D included), and the peak reported beside
+the manifest's stage timings. Issue 14's targets on 2 cores: a 400K-Gaussian, 50-photo capture
+converts in ≤ 10 minutes with a peak ≤ 6 GB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CAPTURE_ENTRIES = ("point_cloud.ply", "images", "transforms.json", "sparse")
+
+
+def tree_rss_bytes(root: int) -> int:
+    """Resident memory of ``root`` and its descendants (Linux /proc)."""
+    parents: dict[int, int] = {}
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit():
+            try:
+                fields = Path(entry.path, "stat").read_text().rsplit(")", 1)[1].split()
+                parents[int(entry.name)] = int(fields[1])
+            except (OSError, IndexError, ValueError):
+                continue
+    tree, frontier = {root}, [root]
+    while frontier:
+        parent = frontier.pop()
+        children = [pid for pid, ppid in parents.items() if ppid == parent and pid not in tree]
+        tree.update(children)
+        frontier.extend(children)
+    total = 0
+    for pid in tree:
+        try:
+            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) * 1024
+                    break
+        except OSError:
+            continue
+    return total
+
+
+def user_capture(src: Path, dst: Path) -> Path:
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    for name in CAPTURE_ENTRIES:
+        if (src / name).exists():
+            (dst / name).symlink_to((src / name).resolve())
+    return dst
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="large", choices=["tiny", "default", "large"])
+    parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--scene", type=Path, default=Path("/tmp/convert_scale_scene"))
+    parser.add_argument("--work", type=Path, default=Path("/tmp/convert_scale"))
+    parser.add_argument("--sample-s", type=float, default=0.5)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+
+    from experiments.report import emit
+    from phirie_jax.io.ply import read_ply_vertex_count
+    from phirie_jax.synthetic.fitted import ensure_synthesized
+
+    scene = ensure_synthesized(args.scene, args.preset, args.seed)
+    capture = user_capture(scene, args.work / "capture")
+    out = args.work / "out"
+    shutil.rmtree(out, ignore_errors=True)
+    command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto"]
+    start, peak = time.perf_counter(), 0
+    child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log: list[str] = []
+    import threading
+
+    reader = threading.Thread(target=lambda: log.extend(child.stdout), daemon=True)
+    reader.start()
+    while child.poll() is None:
+        peak = max(peak, tree_rss_bytes(child.pid))
+        time.sleep(args.sample_s)
+    wall = time.perf_counter() - start
+    reader.join(timeout=5)
+    manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else {}
+    transforms = json.loads((scene / "transforms.json").read_text())
+    frame = transforms["frames"][0]
+    emit({"preset": args.preset, "seed": args.seed, "gaussians": read_ply_vertex_count(scene / "point_cloud.ply"),
+          "views": len(transforms["frames"]),
+          "image": [frame.get("w", transforms.get("w")), frame.get("h", transforms.get("h"))],
+          "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                      "load_average_at_end": os.getloadavg()},
+          "exit_code": child.returncode, "wall_s": round(wall, 1), "peak_rss_gb": round(peak / 2**30, 2),
+          "stage_s": {k: round(v, 1) for k, v in manifest.get("timings", {}).items() if "." not in k},
+          "step_s": {k: round(v, 1) for k, v in manifest.get("timings", {}).items() if "." in k},
+          "frame": {k: manifest.get("frame", {}).get(k) for k in ("up_source", "scale", "scale_source")},
+          "instances": len(manifest.get("instances", [])),
+          "accepted": sum(o.get("status") == "accepted" for o in manifest.get("objects", [])),
+          "output_tail": "".join(log[-15:])}, args.out)
+
+
+if __name__ == "__main__":
+    main()
