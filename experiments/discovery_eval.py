@@ -8,7 +8,8 @@ Each synthetic ``default`` scene (``--scene-root/eval<seed>``, synthesized when 
 ``--fitted`` also ``eval<seed>_fitted``, its Gaussians fitted to its images — see
 ``experiments/fit_scenes.py``) is linked without ``surface.ply``, ``masks/`` and
 ``candidates/``, as a user's capture comes, and converted with ``--masks auto`` through the
-physics stage (observe → objects → physics; the surface is splat-derived).
+physics stage (observe → objects → physics; the surface is splat-derived). Its ``frame.json``
+(metric, +z up) is kept: the frame estimate is measured apart (``tests/frame/``).
 
 Scores (issue 14's definition): an accepted object matches a true object when the F1@20 mm of
 its placed mesh against the true world mesh is ≥ 0.9; objects and true objects are matched one
