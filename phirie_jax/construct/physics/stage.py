@@ -124,11 +124,15 @@ def _build_outcome(entry: dict, category: str | None, out_dir: Path, config: Phy
         return {"reason": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc(limit=4)}
 
 
-def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig) -> list[dict]:
+def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig,
+                  build=None) -> list[dict]:
     """``_build_outcome`` of every entry, in ``config.workers`` processes (CoACD is single-threaded).
 
     A worker that dies (CoACD crashing in native code) takes only its object down: the objects
     it left unfinished are retried alone, and the one that kills its process again is recorded.
+    A single object, or a single core, still builds in a child process; only ``workers=1``
+    builds in this one (unprotected: for debugging). ``build``: what runs per entry (a top-level
+    function; default ``_build_outcome``).
     """
     import multiprocessing
     import os
@@ -136,13 +140,14 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     from concurrent.futures.process import BrokenProcessPool
 
     args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
-    workers = min(len(args), config.workers or os.cpu_count() or 1)
-    if workers <= 1:
-        return [_build_outcome(*a) for a in args]
+    build = _build_outcome if build is None else build
+    if config.workers == 1 or not args:
+        return [build(*a) for a in args]
+    workers = max(1, min(len(args), config.workers or os.cpu_count() or 1))
     spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
     outcomes: list[dict | None] = [None] * len(args)
     with ProcessPoolExecutor(workers, mp_context=spawn) as pool:
-        futures = [pool.submit(_build_outcome, *a) for a in args]
+        futures = [pool.submit(build, *a) for a in args]
         for k, future in enumerate(futures):
             try:
                 outcomes[k] = future.result()
@@ -152,7 +157,7 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
         if outcome is None:
             with ProcessPoolExecutor(1, mp_context=spawn) as alone:
                 try:
-                    outcomes[k] = alone.submit(_build_outcome, *args[k]).result()
+                    outcomes[k] = alone.submit(build, *args[k]).result()
                 except BrokenProcessPool:
                     outcomes[k] = {"reason": "the collision process died (CoACD crashed on this mesh)"}
     return outcomes

@@ -236,3 +236,25 @@ def test_a_scaled_pose_places_the_collision_parts_at_their_scaled_size():
     pose = sim3_matrix(2.0, np.eye(3), [0.0, 0.0, 0.1])
     placed = _placed(object_body(7, [hull_part(np.asarray(box.vertices), 64)], pose, priors(None)), {"id": 7})
     np.testing.assert_allclose(placed.points.max(0) - placed.points.min(0), [0.2, 0.2, 0.2], atol=1e-9)
+
+
+def crashing_build(entry, category, out_dir, config):
+    """A collision build that dies in native code on object 2 (as CoACD can), else succeeds."""
+    import os
+    import signal
+
+    if entry["id"] == 2:
+        os.kill(os.getpid(), signal.SIGSEGV)
+    return {"update": {"built": entry["id"]}}
+
+
+@pytest.mark.parametrize("ids", [(2,), (1, 2, 3)], ids=["alone", "among-others"])
+def test_a_build_that_kills_its_process_is_recorded_and_the_rest_go_on(tmp_path, ids):
+    """Also a single object (one worker) builds in a child process: its crash is the object's
+    recorded failure, never the conversion's end."""
+    from phirie_jax.construct.physics.stage import build_objects
+
+    outcomes = build_objects([{"id": i} for i in ids], {}, tmp_path, PhysicsConfig(workers=0), build=crashing_build)
+    by_id = dict(zip(ids, outcomes))
+    assert by_id[2] == {"reason": "the collision process died (CoACD crashed on this mesh)"}
+    assert all(by_id[i] == {"update": {"built": i}} for i in ids if i != 2)
