@@ -6,7 +6,8 @@ time per stage, and the TSDF backends (Open3D vs the JAX kernel) on the same ren
         --work /tmp/observe_eval --out experiments/results/observe_eval.json
 
 Scenes missing under ``--scene-root/eval<seed>`` are synthesized (``default`` preset). The
-splat-derived surface is built once per scene (render → TSDF → mesh → snap) and used by
+splat-derived surface is built once per scene as the stage builds it (floater rules →
+render → TSDF → mesh → snap onto the kept opaque centres) and used by
 both of its rows; its time is reported as the surface stage of both. Rows "(no snap)" use
 the TSDF mesh before snapping onto the Gaussian centres (the paper's recipe as written).
 IoU: ``phirie_jax.observe.evaluate`` (1 cm occupancy of the visible surface).
@@ -88,6 +89,7 @@ def evaluate_scene(scene_dir: Path, work: Path) -> dict:
 
     from phirie_jax.io.scene import load_scene
     from phirie_jax.observe.config import ObserveConfig
+    from phirie_jax.observe.floaters import surface_gaussians
     from phirie_jax.observe.stage import render_depths
     from phirie_jax.observe.surface import snap_to_centres
 
@@ -100,7 +102,8 @@ def evaluate_scene(scene_dir: Path, work: Path) -> dict:
     scene = load_scene(scene_dir)
     config = ObserveConfig()
     t0 = time.perf_counter()
-    depths, cams, failures = render_depths(scene, config)
+    g, floaters = surface_gaussians(scene.gaussians, config.surface.floaters)  # as the stage does
+    depths, cams, failures = render_depths(scene, config, g)
     render_s = time.perf_counter() - t0
     gt_surface = trimesh.load(scene_dir / "surface.ply", process=False)
     backends, meshes = {}, {}
@@ -109,7 +112,6 @@ def evaluate_scene(scene_dir: Path, work: Path) -> dict:
         meshes[backend], backends[backend] = _timed_fuse(depths, cams, surface_config)
         backends[backend]["error"] = _surface_error(meshes[backend].vertices, gt_surface, np.random.default_rng(0))
     chosen = meshes[config.surface.backend]
-    g = scene.gaussians
     opaque = 1 / (1 + np.exp(-g.opacity_logits.astype(np.float64))) >= config.surface.snap_min_opacity
     t0 = time.perf_counter()
     snapped, _ = snap_to_centres(chosen.vertices, chosen.faces, g.means[opaque].astype(np.float64),
@@ -117,6 +119,7 @@ def evaluate_scene(scene_dir: Path, work: Path) -> dict:
     snap_s = time.perf_counter() - t0
     fuse_s = backends[config.surface.backend]["first_call_s"]
     surface = {"render_s": round(render_s, 2), "rendered_views": len(depths), "failed_views": failures,
+               "floaters": floaters,
                "backend": config.surface.backend, "fuse_extract_s": fuse_s, "snap_s": round(snap_s, 2),
                "error_before_snap": backends[config.surface.backend]["error"],
                "error_after_snap": _surface_error(snapped, gt_surface, np.random.default_rng(0))}
