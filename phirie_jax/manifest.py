@@ -134,10 +134,11 @@ class Manifest:
         return [p for p in ((self.data.get("construct") or {}).get("surface"),
                             ((self.data.get("observe") or {}).get("surface") or {}).get("path")) if p]
 
-    def support_heights(self) -> dict[int, float]:
-        """Object id → height of the support it stands on (gravity frame), from the object stage."""
+    def support_heights(self, source: str | None = None) -> dict[int, float]:
+        """Object id → height of the support it stands on (gravity frame), from the object stage;
+        with ``source``, only supports found that way ("surface": rays onto the scene surface)."""
         return {s["id"]: float(s["height"]) for s in (self.data.get("construct") or {}).get("supports") or []
-                if s.get("height") is not None}
+                if s.get("height") is not None and source in (None, s.get("source"))}
 
     def set(self, section: str, value: Any) -> None:
         """Replace one section (``schema`` and ``timings`` have their own methods)."""

@@ -5,8 +5,10 @@ Reads the capture G0 (the scene folder) and what the earlier stages wrote in ``o
 ``objects/<id>/mesh.obj``), and for the objects being made movable:
 
 1. removal, coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask (``removal``);
-2. per object a robust support plane and the exposed cells of it (``plane``) — no plane
-   is an *unsupported region*, recorded, and that object's hole stays;
+2. per object a robust support plane and the exposed cells of it (``plane``); where the kept
+   Gaussians around the object give none, the level plane of the support the object stage found
+   under it on the scene surface (``plane_source``) — no plane is an *unsupported region*,
+   recorded, and that object's hole stays;
 3. inpainting targets: one primary view per object, all edits of a frame in one target
    (``targets``; OpenCV Telea by default, Navier–Stokes, or an external editor's folder);
 4. new disks on a ``grid`` lattice over the exposed cells plus a margin, coloured from the targets
@@ -182,7 +184,8 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
         try:
-            fill = _object_fill(run, o, r_i, kept, manifest.support_heights().get(o.id), config)
+            fill = _object_fill(run, o, r_i, kept, manifest.support_heights().get(o.id),
+                                o.id in manifest.support_heights("surface"), config)
         except Exception as err:  # noqa: BLE001
             reason = f"{type(err).__name__}: {err}"
             _fail(rec, "failed", reason, err)
@@ -194,9 +197,10 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
 
 
 def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: float | None,
-                 config: BackgroundConfig) -> _ObjectFill | None:
+                 support_on_surface: bool, config: BackgroundConfig) -> _ObjectFill | None:
     """One object's plane, fill region and disks (``plane``); None, recorded, when it has none.
-    r_i: (R,) its removed Gaussians; support: its recorded base height, if any."""
+    r_i: (R,) its removed Gaussians; support: its recorded base height, if any;
+    support_on_surface: that support was found on the scene surface (not Q's own base)."""
     rec = run.records[o.id]
     obj_pts = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
     base = support if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
@@ -204,10 +208,17 @@ def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, suppor
     centre = o.q.mean(0)
     anchor = centre + (base - centre @ run.up) * run.up
     plane, reason = fill_mod.fit_plane(kept.means[ring], run.up, config, anchor)
+    if plane is None and support_on_surface:
+        # The kept Gaussians around it give no plane (optimizer-shaped Gaussians describe a tabletop
+        # with few, large, semi-transparent ones; a neighbour's lower half fills the ring): the
+        # support the object stage found under it on the scene surface, level.
+        plane = fill_mod.Plane(anchor, np.asarray(run.up, np.float64), 0, len(ring), 0.0)
+        rec["plane_source"] = f"observed support: {reason}"
     if plane is None:
         _fail(rec, "unsupported", reason)
         run.unsupported.append({"id": o.id, "reason": reason, "ring_points": len(ring), "removed": len(r_i)})
         return None
+    rec.setdefault("plane_source", "ring")
     rec["plane"] = plane.as_dict()
     region = fill_mod.fill_region(plane, kept.means, kept.opacity, obj_pts,
                                   run.data.means[r_i].astype(np.float64), config)

@@ -161,3 +161,35 @@ def test_a_missing_objects_section_is_an_error_for_people(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps({"schema": "phirie/1", "timings": {}, "instances": []}))
     with pytest.raises(SceneInputError, match="objects"):
         run_background(tmp_path, tmp_path, FAST)
+
+
+@pytest.mark.parametrize("support_source", ["surface", "observed points"])
+def test_a_semi_transparent_tabletop_falls_back_to_the_observed_support(tmp_path, support_source):
+    """Optimizer-shaped captures describe a tabletop with semi-transparent Gaussians: too few
+    opaque ones ring an object to fit its plane. A support the object stage found on the scene
+    surface then gives the level plane; a support that is only Q's own base does not."""
+    from phirie_jax.io.ply import write_gaussian_ply
+
+    scene = toy.build(tmp_path)
+    ply = scene.root / "scene" / "point_cloud.ply"
+    data = read_gaussian_ply(ply)
+    logits = data.opacity_logits.copy()
+    logits[scene.labels == 0] = np.log(0.3 / 0.7)  # below PlaneConfig.min_opacity
+    write_gaussian_ply(ply, dataclasses.replace(data, opacity_logits=logits))
+    manifest = json.loads((scene.out / "manifest.json").read_text())
+    for s in manifest["construct"]["supports"]:
+        s["source"] = support_source
+    (scene.out / "manifest.json").write_text(json.dumps(manifest))
+
+    b = run_background(scene.root / "scene", scene.out, FAST)["background"]
+    records = {o["id"]: o for o in b["objects"]}
+    if support_source == "surface":
+        for k in (1, 2):
+            assert records[k].get("plane_source", "").startswith("observed support:"), (records[k], b["unsupported_regions"])
+            assert records[k]["status"] == "filled" and records[k]["fill"]["disks"] > 0
+            np.testing.assert_allclose(records[k]["plane"]["normal"], [0, 0, 1])
+            assert abs(records[k]["plane"]["point"][2]) < 1e-9  # the recorded support height
+        assert {u["id"] for u in b["unsupported_regions"]} == set()
+    else:
+        assert {u["id"] for u in b["unsupported_regions"]} >= {1, 2}
+        assert all("plane_source" not in records[k] for k in (1, 2))
