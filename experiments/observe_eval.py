@@ -84,9 +84,10 @@ def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
             "timings": {k: round(v, 3) for k, v in timings.items()}}
 
 
-def evaluate_scene(scene_dir: Path, work: Path) -> dict:
+def evaluate_scene(scene_dir: Path, work: Path, compare_backends: tuple[str, ...] = ("open3d", "jax")) -> dict:
     import trimesh
 
+    from phirie_jax.errors import SurfaceTooLargeError
     from phirie_jax.io.scene import load_scene
     from phirie_jax.observe.config import ObserveConfig
     from phirie_jax.observe.floaters import surface_gaussians
@@ -107,9 +108,15 @@ def evaluate_scene(scene_dir: Path, work: Path) -> dict:
     render_s = time.perf_counter() - t0
     gt_surface = trimesh.load(scene_dir / "surface.ply", process=False)
     backends, meshes = {}, {}
-    for backend in ("open3d", "jax"):
+    for backend in dict.fromkeys((config.surface.backend,) + tuple(compare_backends)):
         surface_config = dataclasses.replace(config.surface, backend=backend)
-        meshes[backend], backends[backend] = _timed_fuse(depths, cams, surface_config)
+        try:
+            meshes[backend], backends[backend] = _timed_fuse(depths, cams, surface_config)
+        except SurfaceTooLargeError as err:  # the stage's own refusal: a row of the comparison
+            if backend == config.surface.backend:
+                raise
+            backends[backend] = {"refused": str(err)}
+            continue
         backends[backend]["error"] = _surface_error(meshes[backend].vertices, gt_surface, np.random.default_rng(0))
     chosen = meshes[config.surface.backend]
     opaque = 1 / (1 + np.exp(-g.opacity_logits.astype(np.float64))) >= config.surface.snap_min_opacity
@@ -159,6 +166,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/observe_eval.json"))
     parser.add_argument("--fitted", action="store_true", help="also every scene with fitted Gaussians")
     parser.add_argument("--fit-steps", type=int, default=None, help="with --fitted: Adam steps of the fit")
+    parser.add_argument("--tsdf-backends", nargs="+", default=["open3d", "jax"], choices=["open3d", "jax"],
+                        help="TSDF backends timed on the same depth (the stage's own always runs)")
     args = parser.parse_args()
     if set(args.seeds) & set(DEV_SEEDS):
         raise SystemExit(f"seeds {sorted(set(args.seeds) & set(DEV_SEEDS))} were used for development")
@@ -168,8 +177,9 @@ def main() -> None:
     for seed in args.seeds:
         path = _scene(args.scene_root, seed, args.preset)
         print(f"seed {seed}", flush=True)
-        scenes.append({"seed": seed, **evaluate_scene(path, args.work / f"eval{seed}")})
+        scenes.append({"seed": seed, **evaluate_scene(path, args.work / f"eval{seed}", tuple(args.tsdf_backends))})
     result = {"what": "instance recall/precision at voxel IoU >= 0.5 (1 cm, visible surface)",
+              "tsdf_backends": args.tsdf_backends,
               "preset": args.preset, "seeds": args.seeds, "dev_seeds_excluded": list(DEV_SEEDS),
               "machine": {"platform": platform.platform(), "processor": platform.processor(),
                           "jax_backend": jax.default_backend(), "cpus": __import__("os").cpu_count()},
@@ -180,7 +190,7 @@ def main() -> None:
             path = _scene(args.scene_root, seed, args.preset, True, args.fit_steps)
             print(f"seed {seed} (fitted Gaussians)", flush=True)
             fitted.append({"seed": seed, "fit": json.loads((path / "gt" / "fit.json").read_text()),
-                           **evaluate_scene(path, args.work / f"eval{seed}_fitted")})
+                           **evaluate_scene(path, args.work / f"eval{seed}_fitted", tuple(args.tsdf_backends))})
         result["fitted_summary"], result["fitted_scenes"] = summarize(fitted), fitted
     from phirie_jax.io.atomic import write_text
 
