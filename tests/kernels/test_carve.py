@@ -86,3 +86,24 @@ def test_hull_of_a_sphere_contains_it_and_padded_views_change_nothing():
                            jnp.asarray(np.concatenate([states, pad])))
     np.testing.assert_array_equal(np.asarray(keep2), np.asarray(keep))
     np.testing.assert_array_equal(np.asarray(carved2), np.asarray(carved))
+
+
+def test_an_object_cut_by_the_image_border_in_most_views_is_not_carved():
+    """Real captures frame objects loosely: in 6 of 8 views the sphere's centre projects onto the
+    image's left edge (half of it out of frame). Out-of-image voxels get no vote, so the hull
+    still holds the whole sphere."""
+    cams = ring_cameras()
+    shifted = intrinsics_matrix(FOCAL, FOCAL, 0.0, H / 2)    # the optical axis at the left edge
+    cams = [(shifted if k % 4 else K, m) for k, (K, m) in enumerate(cams)]
+    g = np.linspace(-0.15, 0.15, 31)
+    centres = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    states = np.stack([sphere_state(k, m) for k, m in cams])
+    cut = [k for k, (K, m) in enumerate(cams) if (states[k] == INSIDE)[:, 0].any()]
+    assert len(cut) == 6                                      # the mask touches the border there
+    keep, carved = carve(jnp.asarray(centres, jnp.float32), jnp.asarray(np.stack([k for k, _ in cams]), jnp.float32),
+                         jnp.asarray(np.stack([m for _, m in cams]), jnp.float32), jnp.asarray(states))
+    hull = (np.asarray(carved) == 0) & (np.asarray(keep) >= 2)
+    r = np.linalg.norm(centres, axis=1)
+    pixel = np.hypot(0.8, 0.4) / FOCAL
+    assert np.all(hull[r < RADIUS - pixel])
+    assert not np.any(hull[r > 1.6 * RADIUS])                # the two full views and the halves still bound it
