@@ -327,7 +327,8 @@ def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitCo
         "densify": events, "buckets": sorted(buckets), "capacity": raster.capacity, "capacity_retries": retries,
         "programs": len(programs), "backend": jax.default_backend(), "device": str(jax.devices()[0]),
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
-        "compile_s": round(sum(first_calls) - len(first_calls) * step_s, 3),  # first calls less a step each
+        # first calls less a step each; ~0 when this process compiled the programs for an earlier fit
+        "compile_s": round(max(0.0, sum(first_calls) - len(first_calls) * step_s), 3),
         "run_s": round(wall_s - sum(first_calls) + len(first_calls) * step_s, 3),
         "config": dataclasses.asdict(config)}
     return FitResult(fitted, record)
