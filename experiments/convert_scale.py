@@ -5,8 +5,8 @@ tree, for a capture as users bring it (no scan mesh, no masks: ``--masks auto``)
         --work /tmp/convert_scale --out experiments/results/convert_scale_cpu.json
 
 The scene (a ``phirie synth`` folder, synthesized at ``--scene`` when missing) is linked as a
-user's capture: ``point_cloud.ply``, ``images/``, ``transforms.json`` and ``sparse/`` only (no
-``surface.ply``, ``masks/``, ``gt/`` or ``frame.json``: up and scale are estimated). ``phirie
+user's capture: without ``surface.ply``, ``masks/``, ``candidates/``, ``gt/`` and ``frame.json``
+(up and scale are estimated). ``phirie
 convert`` runs in a child process; every ``--sample-s`` the resident memory of it and all its
 descendants is summed from /proc (CoACD workers and Open3D included), and the peak reported beside
 the manifest's stage timings. Issue 14's targets on 2 cores: a 400K-Gaussian, 50-photo capture
@@ -25,7 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-CAPTURE_ENTRIES = ("point_cloud.ply", "images", "transforms.json", "sparse")
+# what a user's capture lacks, beside what discovery_eval leaves out: the truth and a declared frame
+LEFT_OUT = ("surface.ply", "masks", "candidates", "gt", "frame.json")
 
 
 def tree_rss_bytes(root: int) -> int:
@@ -56,16 +57,6 @@ def tree_rss_bytes(root: int) -> int:
     return total
 
 
-def user_capture(src: Path, dst: Path) -> Path:
-    if dst.exists():
-        shutil.rmtree(dst)
-    dst.mkdir(parents=True)
-    for name in CAPTURE_ENTRIES:
-        if (src / name).exists():
-            (dst / name).symlink_to((src / name).resolve())
-    return dst
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="large", choices=["tiny", "default", "large"])
@@ -76,12 +67,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
+    from experiments.discovery_eval import user_capture
     from experiments.report import emit
-    from phirie_jax.io.ply import read_ply_vertex_count
+    from phirie_jax.io.ply import ply_element_counts
     from phirie_jax.synthetic.fitted import ensure_synthesized
 
     scene = ensure_synthesized(args.scene, args.preset, args.seed)
-    capture = user_capture(scene, args.work / "capture")
+    capture = user_capture(scene, args.work / "capture", LEFT_OUT)
     out = args.work / "out"
     shutil.rmtree(out, ignore_errors=True)
     command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto"]
@@ -100,7 +92,7 @@ def main() -> None:
     manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else {}
     transforms = json.loads((scene / "transforms.json").read_text())
     frame = transforms["frames"][0]
-    emit({"preset": args.preset, "seed": args.seed, "gaussians": read_ply_vertex_count(scene / "point_cloud.ply"),
+    emit({"preset": args.preset, "seed": args.seed, "gaussians": ply_element_counts(scene / "point_cloud.ply")["vertex"],
           "views": len(transforms["frames"]),
           "image": [frame.get("w", transforms.get("w")), frame.get("h", transforms.get("h"))],
           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),

@@ -34,15 +34,16 @@ LOCATED_F1_40 = 0.5  # the friendlier column: F1@40 ≥ 0.5
 LEFT_OUT = ("surface.ply", "masks", "candidates")
 
 
-def user_capture(src: Path, dst: Path) -> Path:
-    """``dst``: ``src`` as a user's capture comes (symlinks; no scan mesh, masks or candidates)."""
+def user_capture(src: Path, dst: Path, leave_out: tuple[str, ...] = LEFT_OUT) -> Path:
+    """``dst``: ``src`` as a user's capture comes (symlinks to all but ``leave_out``: by default no
+    scan mesh, masks or candidates)."""
     import shutil
 
     if dst.exists():
         shutil.rmtree(dst)
     dst.mkdir(parents=True)
     for entry in src.iterdir():
-        if entry.name not in LEFT_OUT:
+        if entry.name not in leave_out:
             (dst / entry.name).symlink_to(entry.resolve())
     return dst
 
@@ -142,7 +143,7 @@ def main() -> None:
             print(json.dumps({k: v for k, v in row.items() if k not in ("per_object", "matches")}), flush=True)
             rows.append(row)
         result[name] = {"summary": summarize(rows), "scenes": rows}
-    emit({k: v for k, v in result.items()}, args.out)
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -133,14 +133,6 @@ def read_ply_header_properties(path: str | Path) -> list[str]:
     return [name for name, _ in _read_header(path, raw).properties]
 
 
-def read_ply_vertex_count(path: str | Path) -> int:
-    """The vertex count a PLY's header declares."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        raw = f.read(65536)
-    return _read_header(path, raw).vertex_count
-
-
 def ply_element_counts(path: str | Path) -> dict[str, int]:
     """Element name → count from the header alone (e.g. a mesh's vertices and faces)."""
     path = Path(path)

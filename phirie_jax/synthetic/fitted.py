@@ -366,7 +366,6 @@ def read_training_views(scene_dir: Path) -> tuple[list[np.ndarray], list[Camera]
 def fit_scene_folder(scene_dir: str | Path, background, config: FitConfig = FitConfig(), seed: int = 0
                      ) -> FitResult:
     """Replace a synthesized folder's ideal Gaussians with fitted ones (module docstring)."""
-
     scene_dir = Path(scene_dir)
     if (scene_dir / "gt" / "fit.json").exists():
         raise ValueError(f"{scene_dir}: its Gaussians are already fitted (gt/fit.json)")

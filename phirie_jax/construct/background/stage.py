@@ -180,12 +180,12 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
+    supports, on_surface = manifest.support_heights(), manifest.support_heights("surface")
     fills = []
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
         try:
-            fill = _object_fill(run, o, r_i, kept, manifest.support_heights().get(o.id),
-                                o.id in manifest.support_heights("surface"), config)
+            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), o.id in on_surface, config)
         except Exception as err:  # noqa: BLE001
             reason = f"{type(err).__name__}: {err}"
             _fail(rec, "failed", reason, err)

@@ -143,7 +143,7 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     build = _build_outcome if build is None else build
     if config.workers == 1 or not args:
         return [build(*a) for a in args]
-    workers = max(1, min(len(args), config.workers or os.cpu_count() or 1))
+    workers = min(len(args), config.workers or os.cpu_count() or 1)
     spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
     outcomes: list[dict | None] = [None] * len(args)
     with ProcessPoolExecutor(workers, mp_context=spawn) as pool:
