@@ -10,7 +10,10 @@ user's capture: without ``surface.ply``, ``masks/``, ``candidates/``, ``gt/`` an
 convert`` runs in a child process; every ``--sample-s`` the resident memory of it and all its
 descendants is summed from /proc (CoACD workers and Open3D included), and the peak reported beside
 the manifest's stage timings. Issue 14's targets on 2 cores: a 400K-Gaussian, 50-photo capture
-converts in ≤ 10 minutes with a peak ≤ 6 GB.
+converts in ≤ 10 minutes with a peak ≤ 6 GB; 5 M Gaussians convert on 24 GB.
+
+``--densify K`` stands in for a capture trained to millions of Gaussians: every Gaussian is
+replaced by K children (``densified``), so the scene and its images stay those of the preset.
 """
 
 from __future__ import annotations
@@ -57,6 +60,33 @@ def tree_rss_bytes(root: int) -> int:
     return total
 
 
+def densified(data, copies: int, seed: int = 0):
+    """``data`` with each Gaussian replaced by ``copies`` children: centres drawn inside the parent
+    (N(0, (0.3 σ)²) along its axes), axes 0.9 σ, the parent's rotation, opacity and colour. The
+    children overlap as the parent did, so renders stay close to the parent's."""
+    import dataclasses
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    n = data.num
+    quats = data.quats.astype(np.float64)
+    quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
+    rot = Rotation.from_quat(quats[:, [1, 2, 3, 0]]).as_matrix()            # (N, 3, 3)
+    sigma = np.exp(data.log_scales.astype(np.float64))                      # (N, 3)
+    rng = np.random.default_rng(seed)
+    offsets = rng.normal(size=(copies, n, 3)) * 0.3 * sigma                # (K, N, 3) local
+    means = data.means[None] + np.einsum("nij,knj->kni", rot, offsets)
+
+    def repeat(a):
+        return np.concatenate([a] * copies)
+
+    return dataclasses.replace(
+        data, means=means.reshape(-1, 3).astype(np.float32), quats=repeat(data.quats),
+        log_scales=repeat(data.log_scales + np.float32(np.log(0.9))), opacity_logits=repeat(data.opacity_logits),
+        sh=repeat(data.sh), extra={k: repeat(v) for k, v in data.extra.items()})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="large", choices=["tiny", "default", "large"])
@@ -64,6 +94,7 @@ def main() -> None:
     parser.add_argument("--scene", type=Path, default=Path("/tmp/convert_scale_scene"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/convert_scale"))
     parser.add_argument("--sample-s", type=float, default=0.5)
+    parser.add_argument("--densify", type=int, default=1, help="children per Gaussian (5 M from the large preset: 11)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
@@ -74,6 +105,12 @@ def main() -> None:
 
     scene = ensure_synthesized(args.scene, args.preset, args.seed)
     capture = user_capture(scene, args.work / "capture", LEFT_OUT)
+    if args.densify > 1:
+        from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
+
+        (capture / "point_cloud.ply").unlink()
+        write_gaussian_ply(capture / "point_cloud.ply",
+                           densified(read_gaussian_ply(scene / "point_cloud.ply"), args.densify))
     out = args.work / "out"
     shutil.rmtree(out, ignore_errors=True)
     command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto"]
@@ -92,7 +129,8 @@ def main() -> None:
     manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else {}
     transforms = json.loads((scene / "transforms.json").read_text())
     frame = transforms["frames"][0]
-    emit({"preset": args.preset, "seed": args.seed, "gaussians": ply_element_counts(scene / "point_cloud.ply")["vertex"],
+    emit({"preset": args.preset, "seed": args.seed, "gaussians": ply_element_counts(capture / "point_cloud.ply")["vertex"],
+          "densify": args.densify,
           "views": len(transforms["frames"]),
           "image": [frame.get("w", transforms.get("w")), frame.get("h", transforms.get("h"))],
           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),

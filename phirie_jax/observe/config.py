@@ -154,6 +154,16 @@ class ObserveConfig:
         points_voxel: an instance's observed points Q_i are thinned to one per voxel of this
             size (the surface resolution).
         max_points: at most this many points in Q_i (a seeded subsample beyond it).
+        silhouette_agreement: a point of Q_i stays when at least this fraction of the instance's
+            views that show it on the instance's label or on none (0) show it on the
+            instance's label. Every point of an object lies inside its silhouette in every
+            view; a pixel lifted past a mask's edge lands on what is behind the object (the
+            table, a wall) and falls outside the silhouette in most other views. A view that
+            shows another instance there abstains (it may hide the point). 0 keeps every point.
+        support_clearance: points of Q_i less than this above the support the instance stands on
+            (``observe.support``, found on the scene surface) are the support's: a mask that
+            bleeds past the object's base lifts a ring of table that every view agrees with.
+            None keeps them.
         working_width: observation renders and ray casts at this image width whatever the
             photos' size (a wider photo's camera is scaled down; the height follows): the
             depth rendered for the splat-derived surface, the rays that lift mask pixels and
@@ -174,6 +184,8 @@ class ObserveConfig:
     min_proposal_points: int = 3
     points_voxel: float = 0.005
     max_points: int = 50_000
+    silhouette_agreement: float = 0.75
+    support_clearance: float | None = 0.005
     working_width: int = 640
     surface_source: str = "auto"
     surface: SurfaceConfig = SurfaceConfig()
@@ -184,6 +196,10 @@ class ObserveConfig:
             raise ValueError(f"surface_source {self.surface_source!r} (expected 'auto', 'mesh' or 'splats')")
         if not (0 < self.overlap <= 1):
             raise ValueError(f"overlap {self.overlap} (expected in (0, 1])")
+        if self.support_clearance is not None and self.support_clearance < 0:
+            raise ValueError(f"support_clearance {self.support_clearance} (expected ≥ 0)")
+        if not (0 <= self.silhouette_agreement <= 1):
+            raise ValueError(f"silhouette_agreement {self.silhouette_agreement} (expected in [0, 1])")
         if self.working_width < 0:
             raise ValueError(f"working_width {self.working_width} (expected ≥ 0; 0 = the photos' size)")
         if self.min_views < 1 or self.pixel_stride < 1 or self.mask_erosion_px < 0:

@@ -80,3 +80,25 @@ def lift_view(raycaster: Raycaster, camera: Camera, masks: ViewMasks, config: Ob
                                   hit_points[lo:hi], n_pixels,
                                   (int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max()))))
     return proposals, rejected
+
+
+def silhouette_votes(points: list[np.ndarray], labels: list[int], camera: Camera, view_labels: np.ndarray
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One view's votes on several instances' points (``silhouette_agreement`` in the config):
+    instance k's points ``points[k]`` (P_k, 3) and its value ``labels[k]`` in ``view_labels``
+    (H, W). Returns per instance ((P_k,) bool: on its label, (P_k,) bool: counted — in front
+    of the camera, in the image, on its label or on none)."""
+    votes = []
+    for pts, own in zip(points, labels, strict=True):
+        inside = np.zeros(len(pts), bool)
+        counted = np.zeros(len(pts), bool)
+        if len(pts):
+            uv, depth = camera.project(pts)
+            col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+            ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < view_labels.shape[1]) & (row < view_labels.shape[0])
+            seen = np.full(len(pts), -1, np.int64)
+            seen[ok] = view_labels[row[ok], col[ok]]
+            inside = seen == own
+            counted = inside | (seen == 0)
+        votes.append((inside, counted))
+    return votes

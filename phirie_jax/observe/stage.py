@@ -4,12 +4,15 @@ Outputs (paths relative to ``out_dir``):
 
 - ``manifest.json``: ``instances`` (DESIGN.md "Contracts": ``id``, ``category``, ``views``
   = supporting camera indices, ``num_points``, ``bounds``, ``source``; plus ``points``,
-  ``confidence``, ``view_names``), ``observe`` (surface used and how it was made, mask
+  ``confidence``, ``view_names``, ``support`` (``observe.support``: height in the gravity
+  frame, source, hits, normal), ``points_dropped`` (by reason)), ``observe`` (surface used and how it was made, mask
   source, failed views, rejected proposals and clusters, the config) and
   ``timings`` (``observe`` and ``observe.<step>`` in seconds).
 - ``observe/instance_<id>.npz``, one per instance:
   ``points`` (N, 3) float32 observed surface samples Q_i (one per ``points_voxel``; only
-  points whose association voxel is seen by ≥ ``min_views`` of the instance's views),
+  points whose association voxel is seen by ≥ ``min_views`` of the instance's views and
+  that lie inside the instance's silhouette in ≥ ``silhouette_agreement`` of the views that
+  judge them, and not within ``support_clearance`` of the support found under them),
   and per supporting proposal (V rows): ``views`` (V,) int32 camera index, ``labels`` (V,)
   int64 value of the instance in that view's mask, ``mask_paths`` (V,) str mask image,
   ``pixels`` (V,) int64 mask area, ``bboxes`` (V, 4) int32 x0 y0 x1 y1 (inclusive),
@@ -30,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
+from phirie_jax.frame.gravity import gravity_frame
 from phirie_jax.io.atomic import write_bytes
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
@@ -47,6 +51,7 @@ from phirie_jax.observe.masks import (
     scannetpp_vertex_labels,
 )
 from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.observe.support import Support, find_support
 from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
 from phirie_jax.types import Camera, SceneInput
 
@@ -187,26 +192,67 @@ def _write_mask(out_dir: Path, camera: Camera, labels: np.ndarray) -> str:
     return rel
 
 
-def instance_record(instance_id: int, members: list[Proposal], mask_paths: dict[int, str],
-                    cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path) -> dict:
-    """Q_i, per-view mask info and the manifest entry of one instance (writes its .npz)."""
+def instance_points(instance_id: int, members: list[Proposal], config: ObserveConfig) -> tuple[np.ndarray, int]:
+    """(Q_i before the silhouette check, points dropped as seen from one view only).
+
+    A point counts when its association voxel is seen by ≥ ``min_views`` of the instance's
+    views (a ray grazing a silhouette lands on the table behind in one view, never in the same
+    place twice); the rest are thinned to one per ``points_voxel`` and capped at ``max_points``."""
     from phirie_jax.observe.surface import pack_keys
 
     points = np.concatenate([p.points for p in members])
-    # a point counts when its association voxel is seen by ≥ min_views of the instance's views:
-    # a ray grazing a silhouette lands on the table behind in one view, never in the same place twice
     voxel_keys = pack_keys(np.floor(points / config.voxel))
     owner = np.repeat(np.array([p.view for p in members]), [len(p.points) for p in members])
     pairs = np.unique(np.stack([voxel_keys, owner], 1), axis=0)
     keys, views_per_key = np.unique(pairs[:, 0], return_counts=True)
     seen = views_per_key[np.searchsorted(keys, voxel_keys)] >= config.min_views
-    dropped = int((~seen).sum())
     points = points[seen]
     _, first = np.unique(pack_keys(np.floor(points / config.points_voxel)), return_index=True)
     points = points[np.sort(first)]
     if len(points) > config.max_points:
         keep = np.random.default_rng(instance_id).choice(len(points), config.max_points, replace=False)
         points = points[np.sort(keep)]
+    return points, int((~seen).sum())
+
+
+def silhouette_agreement(points: list[np.ndarray], members: list[list[Proposal]], mask_paths: dict[int, str],
+                         cameras: tuple[Camera, ...], out_dir: Path) -> list[np.ndarray]:
+    """Per instance, (P_k,) the fraction of its counted views that show each point on its label
+    (``ObserveConfig.silhouette_agreement``; NaN: no view counted it). One pass over the views:
+    each mask is read once for every instance that has a proposal there."""
+    from phirie_jax.layout import resolve
+    from phirie_jax.observe.lift import silhouette_votes
+    from phirie_jax.observe.masks import read_label_png
+
+    inside = [np.zeros(len(p)) for p in points]
+    counted = [np.zeros(len(p)) for p in points]
+    by_view: dict[int, list[tuple[int, int]]] = {}
+    for k, group in enumerate(members):
+        for p in group:
+            by_view.setdefault(p.view, []).append((k, p.label))
+    for view, entries in sorted(by_view.items()):
+        if view not in mask_paths:
+            continue
+        try:
+            labels = read_label_png(resolve(out_dir, mask_paths[view]), cameras[view])
+        except (SceneInputError, OSError):
+            continue
+        ks = [k for k, _ in entries]
+        for k, (on, seen) in zip(ks, silhouette_votes([points[k] for k in ks], [lab for _, lab in entries],
+                                                      cameras[view], labels)):
+            inside[k] += on
+            counted[k] += seen
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return [np.where(c > 0, i / np.maximum(c, 1), np.nan) for i, c in zip(inside, counted)]
+
+
+def instance_record(instance_id: int, members: list[Proposal], points: np.ndarray, support: Support,
+                    dropped: dict[str, int], mask_paths: dict[int, str], cameras: tuple[Camera, ...], source: str,
+                    out_dir: Path) -> dict:
+    """The manifest entry of one instance of Q_i ``points`` standing on ``support`` (writes its
+    .npz); ``dropped``: the points left out, by reason."""
+    if len(points) == 0:
+        raise ValueError(f"no observed point of instance {instance_id} agrees with its masks ({dropped})")
     views = sorted({p.view for p in members})
     centre = points.mean(0)
     visible = 0
@@ -234,7 +280,7 @@ def instance_record(instance_id: int, members: list[Proposal], mask_paths: dict[
             "views": views, "view_names": [cameras[v].name for v in views], "num_points": len(points),
             "bounds": [points.min(0).round(6).tolist(), points.max(0).round(6).tolist()],
             "source": source, "points": rel, "confidence": round(confidence, 4),
-            "single_view_points_dropped": dropped}
+            "support": support.as_record(), "points_dropped": dropped}
 
 
 @dataclasses.dataclass
@@ -267,19 +313,46 @@ def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Rayc
 
 
 def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path,
-               manifest: Manifest) -> tuple[list[dict], list[dict], list[dict]]:
+               manifest: Manifest, raycaster: Raycaster) -> tuple[list[dict], list[dict], list[dict]]:
     """Voxel association of the lifted proposals → (instance records, failed instances, rejected)."""
     with manifest.timed("observe.associate"):
         assoc = associate(lifted.proposals, config.voxel, config.overlap, config.min_views)
+    groups = [(instance_id, [lifted.proposals[i] for i in idx]) for instance_id, idx in assoc.groups]
+    with manifest.timed("observe.consistency"):
+        kept = _consistent_points(groups, lifted.mask_paths, cameras, config, out_dir, manifest, raycaster)
     instances, failed = [], []
     with manifest.timed("observe.write"):
-        for instance_id, idx in assoc.groups:
+        for (instance_id, members), (points, support, dropped) in zip(groups, kept):
             try:
-                instances.append(instance_record(instance_id, [lifted.proposals[i] for i in idx], lifted.mask_paths,
-                                                 cameras, source, config, out_dir))
+                instances.append(instance_record(instance_id, members, points, support, dropped, lifted.mask_paths,
+                                                 cameras, source, out_dir))
             except (OSError, ValueError) as err:
                 failed.append({"id": instance_id, "reason": f"{type(err).__name__}: {err}"})
     return instances, failed, [{k: v for k, v in r.items() if k != "proposal"} for r in assoc.rejected]
+
+
+def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dict[int, str],
+                       cameras: tuple[Camera, ...], config: ObserveConfig, out_dir: Path, manifest: Manifest,
+                       raycaster: Raycaster) -> list[tuple[np.ndarray, Support, dict]]:
+    """Per instance (Q_i, its support, points dropped by reason): the lifted points seen from ≥
+    ``min_views`` views, inside the instance's silhouette in ≥ ``silhouette_agreement`` of the
+    views that judge them, and not on the support found under them."""
+    frame = gravity_frame(manifest.up(), "scene frame")
+    thinned = [instance_points(instance_id, members, config) for instance_id, members in groups]
+    agreement = (silhouette_agreement([p for p, _ in thinned], [m for _, m in groups], mask_paths, cameras, out_dir)
+                 if config.silhouette_agreement > 0 else [np.full(len(p), np.nan) for p, _ in thinned])
+    kept = []
+    for (points, single_view), agree in zip(thinned, agreement):
+        inside = ~(agree < config.silhouette_agreement)  # NaN (no view judged it) keeps the point
+        points = points[inside]
+        support = find_support(frame.to_gravity(points), frame, raycaster)
+        off_support = np.ones(len(points), bool)
+        if support.source == "surface" and config.support_clearance is not None:
+            off_support = frame.to_gravity(points)[:, 2] >= support.height + config.support_clearance
+        kept.append((points[off_support], support,
+                     {"single_view": single_view, "outside_silhouette": int((~inside).sum()),
+                      "on_support": int((~off_support).sum())}))
+    return kept
 
 
 def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
@@ -306,7 +379,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
         with manifest.timed("observe.masks"):
             views, source = mask_views(scene, masks, raycaster, config, record, manifest.up())
         lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
-        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest)
+        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest, raycaster)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),
                              "failed_views": lifted.failures},
                       proposals=len(lifted.proposals), rejected_proposals=lifted.rejected + rejected,

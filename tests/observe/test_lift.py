@@ -155,3 +155,23 @@ def test_scannetpp_annotations_become_masks_of_the_scan(tmp_path):
         np.testing.assert_array_equal(masks.labels == 1, on_box)
     with pytest.raises(SceneInputError, match=r"segIndices: 16 entries \(expected one per scan mesh vertex, 17\)"):
         scannetpp_vertex_labels(anno, len(scan.vertices) + 1)
+
+
+def test_silhouette_votes_count_own_label_and_none_and_abstain_elsewhere():
+    from phirie_jax.observe.lift import silhouette_votes
+
+    cam = ring(1, 1.0, 0.0, width=40, height_px=30, focal=35.0)[0]
+    labels = np.zeros((30, 40), np.int64)
+    labels[:, :20] = 5          # the instance's half of the image
+    labels[:, 30:] = 9          # another instance: abstains
+    cols = np.array([5.5, 25.5, 35.5])
+    # points 0.5 m in front of the camera through pixel (col, 15.5), and one behind it
+    rays = np.stack([cols, np.full(3, 15.5), np.ones(3)], 1) @ np.linalg.inv(cam.K).T
+    in_front = cam.center + 0.5 * rays @ cam.camera_to_world[:3, :3].T
+    behind = cam.center - 0.5 * (rays[:1] @ cam.camera_to_world[:3, :3].T)
+    (on, counted), (on_other, counted_other) = silhouette_votes(
+        [np.concatenate([in_front, behind]), in_front], [5, 9], cam, labels)
+    np.testing.assert_array_equal(on, [True, False, False, False])
+    np.testing.assert_array_equal(counted, [True, True, False, False])
+    np.testing.assert_array_equal(on_other, [False, False, True])
+    np.testing.assert_array_equal(counted_other, [False, True, True])

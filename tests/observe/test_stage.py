@@ -167,3 +167,43 @@ def test_manifest_api(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps({"schema": "phirie/0"}))
     with pytest.raises(SceneInputError, match="manifest.json: schema: 'phirie/0' \\(expected 'phirie/1'\\)"):
         Manifest.load_or_create(tmp_path)
+
+
+def aabb_iou(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    inter = np.prod(np.clip(np.minimum(a[1], b[1]) - np.maximum(a[0], b[0]), 0, None))
+    return float(inter / (np.prod(a[1] - a[0]) + np.prod(b[1] - b[0]) - inter))
+
+
+def test_bleeding_mask_edges_do_not_grow_the_instance_bounds(tabletop, tmp_path):
+    """Masks grown by 2 px past the silhouettes (a segmenter's bleeding edge) lift a ring of
+    table around each object. The silhouette check and the support clearance drop it: AABB IoU
+    of the instance bounds with the true object ≥ 0.5 (< 0.5 for some object with both off)."""
+    import shutil
+
+    import cv2
+
+    root, scene, cams = tabletop
+    bled = tmp_path / "scene"
+    shutil.copytree(root, bled)
+    for cam in cams:
+        mask = cv2.imread(str(root / "masks" / cam.name), cv2.IMREAD_UNCHANGED)
+        grown = cv2.dilate(mask, np.ones((5, 5), np.uint8))
+        write_png(bled / "masks" / cam.name, np.where(mask > 0, mask, grown).astype(np.uint16))
+    truth = {o.id: o.world_mesh().bounds for o in scene.objects}
+    runs = {"off": dict(silhouette_agreement=0.0, support_clearance=None),
+            "silhouette only": dict(support_clearance=None), "default": {}}
+    ious, dropped = {}, {}
+    for name, options in runs.items():
+        config = ObserveConfig(pixel_stride=1, mask_erosion_px=0, **options)
+        manifest = run_observe(bled, tmp_path / name.replace(" ", "_"), config, masks="files")
+        assert sorted(i["id"] for i in manifest["instances"]) == sorted(truth)
+        ious[name] = {i["id"]: aabb_iou(i["bounds"], truth[i["id"]]) for i in manifest["instances"]}
+        dropped[name] = [i["points_dropped"] for i in manifest["instances"]]
+        assert all(i["support"]["source"] == "surface" for i in manifest["instances"])
+    assert min(ious["off"].values()) < 0.5                    # the defect is there without the checks
+    assert all(d["outside_silhouette"] == 0 and d["on_support"] == 0 for d in dropped["off"])
+    assert all(d["outside_silhouette"] > 0 for d in dropped["silhouette only"])
+    assert sum(ious["silhouette only"].values()) > sum(ious["off"].values())
+    assert min(ious["default"].values()) >= 0.5
+    assert all(d["on_support"] > 0 for d in dropped["default"])

@@ -22,8 +22,8 @@ from scipy.spatial import ConvexHull, QhullError
 
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.meshing import largest_component, occupancy_mesh
-from phirie_jax.construct.objects.support import Support
 from phirie_jax.frame.gravity import GravityFrame
+from phirie_jax.observe.support import Support
 
 ABOVE_SUPPORT = 0.005   # Q points lower than this above the support may be the support's
 MIN_SHAPE_POINTS = 10

@@ -53,13 +53,13 @@ from phirie_jax.construct.objects.register import (
     score_placement,
     search,
 )
-from phirie_jax.construct.objects.support import Support, find_support
 from phirie_jax.errors import SceneInputError
 from phirie_jax.frame.gravity import GravityFrame, gravity_frame
 from phirie_jax.frame.resolve import scene_in_world
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.observe.support import Support, find_support
 from phirie_jax.types import GaussianSplatData, SceneInput
 
 
@@ -312,9 +312,10 @@ def _load_instances(manifest: Manifest, out_dir: Path) -> tuple[list[_Observed],
 def _frame_and_supports(manifest: Manifest, loaded: list[_Observed], raycaster
                         ) -> tuple[GravityFrame, list[Support]]:
     """The scene's gravity frame (up as decided once, ``phirie_jax.frame``) and each instance's
-    support under it."""
+    support under it (as observation found it; found here for an observation that did not record it)."""
     frame = gravity_frame(manifest.up(), "scene frame")
-    return frame, [find_support(frame.to_gravity(o.points), frame, raycaster) for o in loaded]
+    return frame, [Support.from_record(o.record["support"]) if o.record.get("support")
+                   else find_support(frame.to_gravity(o.points), frame, raycaster) for o in loaded]
 
 
 def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list[Support], scene: SceneInput,

@@ -9,10 +9,10 @@ import trimesh
 from phirie_jax.construct.objects.candidates import builtin, mesh_problem
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.generators import InstanceInput, extrude, primitive
-from phirie_jax.construct.objects.support import Support, find_support
 from phirie_jax.frame.gravity import GravityFrame, gravity_frame
 from phirie_jax.geometry import rotation_to_z
 from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.observe.support import Support, find_support
 from tests.kernels.shapes import box_surface
 
 SUPPORT_Z = 0.75

@@ -1,5 +1,9 @@
 """Each instance's support plane, in the scene's gravity frame (``phirie_jax.frame.gravity``).
 
+The observation stage finds it once (its points on the plane are not the object's, see
+``ObserveConfig.support_clearance``) and records it with the instance; later stages read it
+(``Support.from_record``).
+
 Support of an instance: rays cast straight down onto the scene surface around its
 footprint (a ring 1.5–6 cm outside Q's robust box) hit what it stands on. Of the hits
 no higher than 1 cm above Q's 2nd-percentile height and at most ``MAX_HIDDEN_BASE``
@@ -31,6 +35,15 @@ class Support:
     source: str           # "surface" (rays onto the scene surface) or "observed points"
     hits: int             # rays that hit the support
     normal: np.ndarray    # (3,) gravity-frame normal of the fitted plane (+z without a fit)
+
+    def as_record(self) -> dict:
+        return {"height": round(self.height, 6), "source": self.source, "hits": self.hits,
+                "normal": np.round(self.normal, 6).tolist()}
+
+    @staticmethod
+    def from_record(record: dict) -> "Support":
+        return Support(float(record["height"]), str(record["source"]), int(record["hits"]),
+                       np.asarray(record["normal"], np.float64))
 
 
 def _ring_origins(q_gravity: np.ndarray) -> np.ndarray:
