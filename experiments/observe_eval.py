@@ -81,6 +81,7 @@ def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
         timings["observe.surface"] = surface_s
     return {"objects": result["objects"], "instances": result["instances"], "matched": result["matched"],
             "ious": [o["best_iou"] for o in result["per_object"]],
+            "bounds_ious": [o["bounds_iou"] for o in result["per_object"]],
             "timings": {k: round(v, 3) for k, v in timings.items()}}
 
 
@@ -152,6 +153,8 @@ def summarize(scenes: list[dict]) -> list[dict]:
         out.append({"row": key, "objects": objects, "instances": instances, "matched": matched,
                     "recall": round(matched / objects, 4), "precision": round(matched / max(instances, 1), 4),
                     "mean_iou": round(float(np.mean([i for r in rows for i in r["ious"]])), 4),
+                    "min_bounds_iou": round(float(np.min([i for r in rows for i in r["bounds_ious"]])), 4),
+                    "mean_bounds_iou": round(float(np.mean([i for r in rows for i in r["bounds_ious"]])), 4),
                     "seconds": {s: round(float(np.mean([r["timings"].get(s, 0.0) for r in rows])), 2)
                                 for s in stages}})
     return out
@@ -195,12 +198,14 @@ def main() -> None:
     from phirie_jax.io.atomic import write_text
 
     write_text(args.out, json.dumps(result, indent=2) + "\n")
-    print("| masks / surface | recall | precision | mean best IoU | surface s | masks s | lift s | associate s | total s |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| masks / surface | recall | precision | mean best IoU | bounds AABB IoU min / mean | surface s | masks s "
+          "| lift s | associate s | total s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in result["summary"] + [{**r, "row": f"{r['row']} (fitted)"} for r in result.get("fitted_summary", [])]:
         s = r["seconds"]
         print(f"| {r['row']} | {r['recall']:.3f} ({r['matched']}/{r['objects']}) | {r['precision']:.3f} "
-              f"({r['matched']}/{r['instances']}) | {r['mean_iou']:.3f} | {s.get('observe.surface', 0):.1f} | "
+              f"({r['matched']}/{r['instances']}) | {r['mean_iou']:.3f} | {r['min_bounds_iou']:.2f} / "
+              f"{r['mean_bounds_iou']:.2f} | {s.get('observe.surface', 0):.1f} | "
               f"{s.get('observe.masks', 0):.1f} | {s.get('observe.lift', 0):.1f} | "
               f"{s.get('observe.associate', 0):.2f} | {s.get('observe', 0):.1f} |")
 

@@ -161,9 +161,9 @@ class ObserveConfig:
             table, a wall) and falls outside the silhouette in most other views. A view that
             shows another instance there abstains (it may hide the point). 0 keeps every point.
         support_clearance: points of Q_i less than this above the support the instance stands on
-            (``observe.support``, found on the scene surface) are the support's: a mask that
-            bleeds past the object's base lifts a ring of table that every view agrees with.
-            None keeps them.
+            (``observe.support``: a plane found on the scene surface, ``Support.is_plane``) are the
+            support's: a mask that bleeds past the object's base lifts a ring of table that
+            every view agrees with. None keeps them.
         working_width: observation renders and ray casts at this image width whatever the
             photos' size (a wider photo's camera is scaled down; the height follows): the
             depth rendered for the splat-derived surface, the rays that lift mask pixels and

@@ -78,8 +78,17 @@ def match(iou: np.ndarray, threshold: float = IOU_THRESHOLD) -> list[tuple[int, 
     return out
 
 
+def aabb_iou(a, b) -> float:
+    """IoU of two axis-aligned boxes ([min xyz], [max xyz])."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    inter = float(np.prod(np.clip(np.minimum(a[1], b[1]) - np.maximum(a[0], b[0]), 0, None)))
+    union = float(np.prod(a[1] - a[0]) + np.prod(b[1] - b[0])) - inter
+    return inter / union if union > 0 else 0.0
+
+
 def evaluate(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera] | None = None) -> dict:
-    """Recall / precision of the instances in ``out_dir/manifest.json`` against ``scene_dir/gt``."""
+    """Recall / precision of the instances in ``out_dir/manifest.json`` against ``scene_dir/gt``;
+    per object, the best instance's IoU and the AABB IoU of its ``bounds`` with the true mesh's."""
     import trimesh
 
     from phirie_jax.io.scene import load_scene
@@ -90,8 +99,8 @@ def evaluate(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera] |
         cameras = list(load_scene(scene_dir, check_images=False).cameras)
     surface = trimesh.load(scene_dir / "surface.ply", force="mesh", process=False)
     caster = Raycaster(surface.vertices, surface.faces)
-    truth = [visible_samples(trimesh.load(scene_dir / o["mesh"], force="mesh", process=False), caster, cameras,
-                             seed=o["id"]) for o in objects]
+    meshes = [trimesh.load(scene_dir / o["mesh"], force="mesh", process=False) for o in objects]
+    truth = [visible_samples(mesh, caster, cameras, seed=o["id"]) for mesh, o in zip(meshes, objects)]
     manifest = json.loads((out_dir / "manifest.json").read_text())
     instances = manifest.get("instances", [])
     predicted = [np.load(out_dir / inst["points"])["points"].astype(np.float64) for inst in instances]
@@ -104,6 +113,8 @@ def evaluate(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera] |
         per_object.append({"id": obj["id"], "category": obj["category"], "visible_samples": len(truth[g]),
                            "best_iou": round(float(iou[g, best]), 4) if best is not None else 0.0,
                            "best_instance": instances[best]["id"] if best is not None else None,
+                           "bounds_iou": (round(aabb_iou(instances[best]["bounds"], meshes[g].bounds), 4)
+                                          if best is not None else 0.0),
                            "matched_instance": instances[matched[1]]["id"] if matched else None})
     return {"objects": len(objects), "instances": len(instances), "matched": len(matches),
             "recall": len(matches) / max(len(objects), 1),

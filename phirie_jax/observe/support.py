@@ -36,6 +36,12 @@ class Support:
     hits: int             # rays that hit the support
     normal: np.ndarray    # (3,) gravity-frame normal of the fitted plane (+z without a fit)
 
+    @property
+    def is_plane(self) -> bool:
+        """Found on the scene surface by enough rays to be a plane under the object (a few hits
+        on a wall-mounted object's plaque or a neighbour are not one)."""
+        return self.source == "surface" and self.hits >= MIN_PLANE_HITS
+
     def as_record(self) -> dict:
         return {"height": round(self.height, 6), "source": self.source, "hits": self.hits,
                 "normal": np.round(self.normal, 6).tolist()}

@@ -13,7 +13,7 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.manifest import SCHEMA, Manifest
 from phirie_jax.observe.auto import observed_samples, segment
 from phirie_jax.observe.config import AutoMaskConfig, ObserveConfig
-from phirie_jax.observe.evaluate import evaluate, iou_matrix, match
+from phirie_jax.observe.evaluate import aabb_iou, evaluate, iou_matrix, match
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.observe.stage import run_observe
 from tests.observe.helpers import ground_truth_ids, tabletop_folder, write_png
@@ -167,12 +167,6 @@ def test_manifest_api(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps({"schema": "phirie/0"}))
     with pytest.raises(SceneInputError, match="manifest.json: schema: 'phirie/0' \\(expected 'phirie/1'\\)"):
         Manifest.load_or_create(tmp_path)
-
-
-def aabb_iou(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    inter = np.prod(np.clip(np.minimum(a[1], b[1]) - np.maximum(a[0], b[0]), 0, None))
-    return float(inter / (np.prod(a[1] - a[0]) + np.prod(b[1] - b[0]) - inter))
 
 
 def test_bleeding_mask_edges_do_not_grow_the_instance_bounds(tabletop, tmp_path):

@@ -96,3 +96,12 @@ def test_rotation_to_z_and_the_support_of_a_tilted_table_in_its_gravity_frame():
     nothing = find_support(frame.to_gravity(q_world), frame, None)
     assert nothing.source == "observed points"
     assert isinstance(frame, GravityFrame)
+
+
+def test_a_support_is_a_plane_only_when_enough_rays_found_it():
+    up = np.array([0.0, 0.0, 1.0])
+    assert Support(0.75, "surface", 400, up).is_plane
+    assert not Support(0.75, "surface", 4, up).is_plane            # a plaque's edge under a wall-mounted head
+    assert not Support(0.75, "observed points", 0, up).is_plane
+    record = Support(0.75, "surface", 400, up).as_record()
+    assert Support.from_record(record).height == 0.75 and Support.from_record(record).hits == 400
