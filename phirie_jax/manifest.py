@@ -134,11 +134,17 @@ class Manifest:
         return [p for p in ((self.data.get("construct") or {}).get("surface"),
                             ((self.data.get("observe") or {}).get("surface") or {}).get("path")) if p]
 
-    def support_heights(self, source: str | None = None) -> dict[int, float]:
-        """Object id → height of the support it stands on (gravity frame), from the object stage;
-        with ``source``, only supports found that way ("surface": rays onto the scene surface)."""
-        return {s["id"]: float(s["height"]) for s in (self.data.get("construct") or {}).get("supports") or []
-                if s.get("height") is not None and source in (None, s.get("source"))}
+    def supports(self) -> dict:
+        """Object id → the ``observe.support.Support`` it stands on, as observation recorded it with
+        the instance (older folders: as the object stage recorded it)."""
+        from phirie_jax.observe.support import Support
+
+        found = {int(s["id"]): Support(float(s["height"]), str(s["source"]), int(s.get("hits", 0)),
+                                       np.array([0.0, 0.0, 1.0]))
+                 for s in (self.data.get("construct") or {}).get("supports") or [] if s.get("height") is not None}
+        found.update({int(i["id"]): Support.from_record(i["support"]) for i in self.data.get("instances") or []
+                      if i.get("support")})
+        return found
 
     def set(self, section: str, value: Any) -> None:
         """Replace one section (``schema`` and ``timings`` have their own methods)."""

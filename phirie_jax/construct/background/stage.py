@@ -45,6 +45,7 @@ from phirie_jax.geometry import sigmoid
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.observe.support import Support
 from phirie_jax.types import Camera, GaussianSplatData, SceneInput
 
 VISIBLE_TRANS = 0.5  # a target sees a disk where the front layer lets this much through
@@ -180,12 +181,12 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
-    supports, on_surface = manifest.support_heights(), manifest.support_heights("surface")
+    supports = manifest.supports()
     fills = []
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
         try:
-            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), o.id in on_surface, config)
+            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), config)
         except Exception as err:  # noqa: BLE001
             reason = f"{type(err).__name__}: {err}"
             _fail(rec, "failed", reason, err)
@@ -196,19 +197,18 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
     return fills
 
 
-def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: float | None,
-                 support_on_surface: bool, config: BackgroundConfig) -> _ObjectFill | None:
+def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: Support | None,
+                 config: BackgroundConfig) -> _ObjectFill | None:
     """One object's plane, fill region and disks (``plane``); None, recorded, when it has none.
-    r_i: (R,) its removed Gaussians; support: its recorded base height, if any;
-    support_on_surface: that support was found on the scene surface (not Q's own base)."""
+    r_i: (R,) its removed Gaussians; support: what observation found it stands on, if recorded."""
     rec = run.records[o.id]
     obj_pts = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
-    base = support if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
+    base = support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
     ring = fill_mod.ring_points(kept.means, kept.opacity, obj_pts, run.up, base, config)
     centre = o.q.mean(0)
     anchor = centre + (base - centre @ run.up) * run.up
     plane, reason = fill_mod.fit_plane(kept.means[ring], run.up, config, anchor)
-    if plane is None and support_on_surface:
+    if plane is None and support is not None and support.is_plane:
         # The kept Gaussians around it give no plane (optimizer-shaped Gaussians describe a tabletop
         # with few, large, semi-transparent ones; a neighbour's lower half fills the ring): the
         # support the object stage found under it on the scene surface, level.

@@ -146,7 +146,7 @@ def build(root: Path) -> ToyScene:
             if len(rows) >= 4:
                 views[k].append((v, len(rows), [cols.min(), rows.min(), cols.max(), rows.max()]))
 
-    instances, objects, supports = [], [], []
+    instances, objects = [], []
     for k, ((cx, cy, cz), r) in SPHERES.items():
         rel = f"observe/instance_{k}.npz"
         buf = io.BytesIO()
@@ -159,7 +159,9 @@ def build(root: Path) -> ToyScene:
         (out / rel).write_bytes(buf.getvalue())
         instances.append({"id": k, "category": None, "views": [v for v, _, _ in views[k]],
                           "num_points": len(q_points[k]), "points": rel, "source": "files",
-                          "bounds": [q_points[k].min(0).tolist(), q_points[k].max(0).tolist()]})
+                          "bounds": [q_points[k].min(0).tolist(), q_points[k].max(0).tolist()],
+                          "support": {"height": 0.0 if k != 4 else cz - r, "source": "test", "hits": 0,
+                                      "normal": [0.0, 0.0, 1.0]}})
         mesh = trimesh.creation.icosphere(subdivisions=3, radius=r)
         (out / "objects" / str(k)).mkdir(parents=True, exist_ok=True)
         mesh.export(out / "objects" / str(k) / "mesh.obj")
@@ -167,12 +169,11 @@ def build(root: Path) -> ToyScene:
         pose[:3, 3] = [cx, cy, cz]
         objects.append({"id": k, "status": "rejected" if k == 3 else "accepted", "reason": None,
                         "pose": pose.tolist(), "mesh": f"objects/{k}/mesh.obj"})
-        supports.append({"id": k, "height": 0.0 if k != 4 else cz - r, "source": "test"})
     # 5: accepted, but its observation file is gone: recorded as failed, the others go on
     instances.append({"id": 5, "category": None, "views": [], "num_points": 0, "points": "observe/missing.npz",
                       "source": "files", "bounds": [[0, 0, 0], [0, 0, 0]]})
     objects.append({"id": 5, "status": "accepted", "reason": None, "pose": np.eye(4).tolist(), "mesh": None})
     manifest = {"schema": "phirie/1", "timings": {}, "instances": instances, "objects": objects,
-                "construct": {"gravity": {"up": [0.0, 0.0, 1.0], "source": "test"}, "supports": supports}}
+                "construct": {"gravity": {"up": [0.0, 0.0, 1.0], "source": "test"}}}
     (out / "manifest.json").write_text(json.dumps(manifest))
     return ToyScene(root, out, data, labels, cams)
