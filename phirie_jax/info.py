@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.ply import ply_element_counts
-from phirie_jax.types import SceneInput
+from phirie_jax.io.gaussian_checks import degenerate_counts
+from phirie_jax.io.ply import ply_element_counts, read_gaussian_ply
+from phirie_jax.types import GaussianSplatData, SceneInput
 
 
 def _relative(path: Path | None, root: Path) -> str | None:
@@ -32,21 +33,33 @@ def _mesh_facts(path: Path) -> dict:
     return facts
 
 
+def degenerate_facts(path: Path) -> dict:
+    """``{"total": N, reason: count, ...}`` for the degenerate Gaussians of a Gaussian PLY.
+
+    Read from the file itself: a loaded scene has already dropped them.
+    """
+    counts = degenerate_counts(read_gaussian_ply(path, allow_non_finite=True))
+    return {"total": sum(counts.values()), **counts}
+
+
+def _gaussian_facts(g: GaussianSplatData, path: Path | None, root: Path) -> dict:
+    return {
+        "path": _relative(path, root),
+        "count": g.num,  # kept: the degenerate ones are dropped, as every stage does
+        "degenerate": degenerate_facts(path) if path is not None else None,
+        "sh_degree": g.sh_degree,
+        "extra_properties": list(g.extra),
+        "mean_opacity": round(float(np.mean(1.0 / (1.0 + np.exp(-g.opacity_logits)))), 4)
+        if g.num else None,
+    }
+
+
 def scene_facts(scene: SceneInput) -> dict:
-    """A JSON-ready summary: layout, Gaussians, cameras, images, surface, masks, candidates, bounds."""
+    """A JSON-ready summary: layout, Gaussians (with the degenerate ones counted by reason), cameras,
+    images, surface, masks, candidates, bounds."""
     facts: dict = {"root": str(scene.root), "layout": scene.layout}
     g = scene.gaussians
-    if g is None:
-        facts["gaussians"] = None
-    else:
-        facts["gaussians"] = {
-            "path": _relative(scene.gaussians_path, scene.root),
-            "count": g.num,
-            "sh_degree": g.sh_degree,
-            "extra_properties": list(g.extra),
-            "mean_opacity": round(float(np.mean(1.0 / (1.0 + np.exp(-g.opacity_logits)))), 4)
-            if g.num else None,
-        }
+    facts["gaussians"] = None if g is None else _gaussian_facts(g, scene.gaussians_path, scene.root)
     cams = scene.cameras
     if cams:
         sizes = Counter(f"{c.width}x{c.height}" for c in cams)

@@ -9,7 +9,8 @@ Layouts (DESIGN.md "Contracts"; detected, never asked for):
 - A Gaussian PLY on its own (no cameras).
 
 Gaussians: ``--gaussians PATH``, else ``point_cloud.ply``, ``splat.ply``, or the highest
-``point_cloud/iteration_*/point_cloud.ply``. Surface mesh: ``--surface PATH``, else the
+``point_cloud/iteration_*/point_cloud.ply``; degenerate ones (``gaussian_checks``) are dropped
+with one warning line. Surface mesh: ``--surface PATH``, else the
 ScanNet++ scan, else ``surface.{ply,obj}`` or ``mesh.{ply,obj}``. Instance masks:
 ``masks/<image stem>.png`` (16-bit, 0 = none, k = instance k). Candidates:
 ``candidates/<instance id>/<name>.{glb,obj,ply}``, each with an optional Gaussian PLY
@@ -19,16 +20,18 @@ beside it (any PLY whose header carries 3DGS fields, paired by name prefix).
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.colmap import read_colmap_model
+from phirie_jax.io.gaussian_checks import degenerate_counts, degenerate_mask, describe_counts
 from phirie_jax.io.images import image_size
 from phirie_jax.io.ply import is_gaussian_ply, read_gaussian_ply
 from phirie_jax.io.transforms_json import read_transforms_json
-from phirie_jax.types import GAUSSIAN_NAMES, Camera, CandidateFiles, SceneInput
+from phirie_jax.types import GAUSSIAN_NAMES, Camera, CandidateFiles, GaussianSplatData, SceneInput
 
 SURFACE_NAMES = ("surface.ply", "surface.obj", "mesh.ply", "mesh.obj")
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply")
@@ -46,6 +49,25 @@ def find_gaussians(root: Path) -> Path | None:
         if m:
             iterations.append((int(m.group(1)), p))
     return max(iterations)[1] if iterations else None
+
+
+def load_gaussians(path: Path) -> GaussianSplatData:
+    """The scene's Gaussians without the degenerate ones (``gaussian_checks``).
+
+    Dropping them is announced by one line on stderr, ``phirie: warning: FILE: dropped N
+    degenerate Gaussians (...)``; a file holding nothing else is a ``SceneInputError``.
+    """
+    data = read_gaussian_ply(path, allow_non_finite=True)
+    bad = degenerate_mask(data)
+    if not bad.any():
+        return data
+    counts = describe_counts(degenerate_counts(data))
+    if bad.all():
+        raise SceneInputError(path, "element vertex",
+                              f"all {data.num} Gaussians are degenerate ({counts}); expected usable ones")
+    print(f"phirie: warning: {path}: dropped {int(bad.sum())} degenerate Gaussians ({counts})",
+          file=sys.stderr)
+    return data.subset(~bad)
 
 
 def _cameras(root: Path) -> tuple[str, list[Camera], Path | None, np.ndarray | None]:
@@ -138,7 +160,7 @@ def load_scene(
         if path.suffix.lower() != ".ply":
             raise SceneInputError(path, None, "not a folder or a .ply (expected a scene folder or a Gaussian PLY)")
         return SceneInput(root=path.parent, layout="gaussians",
-                          gaussians=read_gaussian_ply(path), gaussians_path=path)
+                          gaussians=load_gaussians(path), gaussians_path=path)
 
     layout, cameras, source, points = _cameras(path)
     if check_images and cameras:
@@ -157,7 +179,7 @@ def load_scene(
     return SceneInput(
         root=path,
         layout=layout,
-        gaussians=read_gaussian_ply(gaussians_path) if gaussians_path else None,
+        gaussians=load_gaussians(gaussians_path) if gaussians_path else None,
         gaussians_path=gaussians_path,
         cameras=tuple(cameras),
         camera_source=source,

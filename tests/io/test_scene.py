@@ -187,17 +187,59 @@ def test_unsupported_camera_model(tmp_path, capsys):
     assert_one_line_error(capsys, [tmp_path], "cameras.txt", "FOV")
 
 
-def test_truncated_and_non_finite_gaussians(colmap_scene, capsys):
+def test_truncated_and_malformed_gaussians(colmap_scene, capsys):
     ply = colmap_scene / "point_cloud" / "iteration_30000" / "point_cloud.ply"
     raw = ply.read_bytes()
     ply.write_bytes(raw[:-7])
     assert_one_line_error(capsys, [colmap_scene], "point_cloud.ply", "truncated")
     ply.write_bytes(raw.replace(b"property float opacity", b"property float opacityX"))
     assert_one_line_error(capsys, [colmap_scene], "point_cloud.ply", "'opacity'", "missing")
-    values = np.frombuffer(raw[raw.index(b"end_header\n") + 11:], np.float32).copy()
-    values[5 * (len(values) // 100) + 1] = np.nan  # vertex 5, property y
-    ply.write_bytes(raw[: raw.index(b"end_header\n") + 11] + values.tobytes())
-    assert_one_line_error(capsys, [colmap_scene], "vertex 5 property 'y'", "finite")
+    ply.write_bytes(raw + b"\0" * 4)
+    assert_one_line_error(capsys, [colmap_scene], "point_cloud.ply", "trailing data beyond the declared count")
+    ply.write_bytes(raw.replace(b"element vertex 100", b"element vertex 0")[: raw.index(b"end_header\n") + 11])
+    assert_one_line_error(capsys, [colmap_scene], "point_cloud.ply", "no Gaussians")
+
+
+def write_degenerate_splat(path, n=100) -> None:
+    """``write_splat``'s Gaussians with vertex 5's y NaN, 7's quaternion zero, 9's scale e^40."""
+    write_splat(path, n=n)
+    raw = path.read_bytes()
+    start = raw.index(b"end_header\n") + 11
+    values = np.frombuffer(raw[start:], np.float32).copy().reshape(n, -1)
+    names = [line.split()[-1].decode() for line in raw[:start].split(b"\n") if line.startswith(b"property")]
+    values[5, names.index("y")] = np.nan
+    values[7, [names.index(f"rot_{i}") for i in range(4)]] = 0.0
+    values[9, names.index("scale_1")] = 40.0
+    path.write_bytes(raw[:start] + values.tobytes())
+
+
+def test_degenerate_gaussians_are_dropped_with_one_warning(colmap_scene, capsys):
+    ply = colmap_scene / "point_cloud" / "iteration_30000" / "point_cloud.ply"
+    write_degenerate_splat(ply)
+    scene = load_scene(colmap_scene)
+    assert scene.gaussians.num == 97 and np.isfinite(scene.gaussians.means).all()
+    err = capsys.readouterr().err
+    assert err == (f"phirie: warning: {ply}: dropped 3 degenerate Gaussians "
+                   "(1 non-finite mean, 1 zero quaternion, 1 |log-scale| > 20)\n")
+    code, out, err = run_cli(capsys, ply, "--json")  # a PLY on its own: the same
+    gaussians = json.loads(out)["gaussians"]
+    assert code == 0 and err.count("\n") == 1 and "dropped 3 degenerate Gaussians" in err
+    assert gaussians["count"] == 97
+    assert gaussians["degenerate"] == {"total": 3, "non-finite mean": 1, "zero quaternion": 1,
+                                       "|log-scale| > 20": 1}
+
+
+def test_all_gaussians_degenerate_is_an_error(tmp_path, capsys):
+    write_splat(tmp_path / "point_cloud.ply", n=3)
+    raw = (tmp_path / "point_cloud.ply").read_bytes()
+    start = raw.index(b"end_header\n") + 11
+    values = np.frombuffer(raw[start:], np.float32).copy().reshape(3, -1)
+    values[:, -4:] = 0.0  # rot_0..3 come last in the default layout
+    (tmp_path / "point_cloud.ply").write_bytes(raw[:start] + values.tobytes())
+    with pytest.raises(SceneInputError, match=r"point_cloud\.ply: element vertex: all 3 Gaussians are "
+                                              r"degenerate \(3 zero quaternion\)"):
+        load_scene(tmp_path)
+    assert_one_line_error(capsys, [tmp_path], "point_cloud.ply", "all 3 Gaussians are degenerate")
 
 
 def test_missing_scene_and_bad_candidate_folder(tmp_path, capsys):
@@ -216,6 +258,7 @@ def test_info_on_colmap_and_nerfstudio(colmap_scene, nerfstudio_scene, capsys):
         facts = json.loads(out)
         assert code == 0 and facts["layout"] == layout
         assert facts["gaussians"]["count"] == count and facts["gaussians"]["sh_degree"] == 3
+        assert facts["gaussians"]["degenerate"] == {"total": 0}
         assert facts["cameras"]["models"] == {"PINHOLE": facts["cameras"]["count"]}
         assert facts["cameras"]["image_sizes"] == {f"{WIDTH}x{HEIGHT}": facts["cameras"]["count"]}
         lo, hi = np.array(facts["bounds"])
