@@ -134,16 +134,12 @@ class Manifest:
         return [p for p in ((self.data.get("construct") or {}).get("surface"),
                             ((self.data.get("observe") or {}).get("surface") or {}).get("path")) if p]
 
-    def supports(self) -> dict:
-        """Object id → the ``observe.support.Support`` it stands on, as observation recorded it with
-        the instance (older folders: as the object stage recorded it)."""
-        from phirie_jax.observe.support import Support
-
-        found = {int(s["id"]): Support(float(s["height"]), str(s["source"]), int(s.get("hits", 0)),
-                                       np.array([0.0, 0.0, 1.0]))
+    def support_records(self) -> dict[int, dict]:
+        """Object id → the record of the support it stands on (``observe.support.Support.as_record``),
+        as observation recorded it with the instance (older folders: as the object stage did)."""
+        found = {int(s["id"]): {"normal": [0.0, 0.0, 1.0], "hits": 0, **s}
                  for s in (self.data.get("construct") or {}).get("supports") or [] if s.get("height") is not None}
-        found.update({int(i["id"]): Support.from_record(i["support"]) for i in self.data.get("instances") or []
-                      if i.get("support")})
+        found.update({int(i["id"]): i["support"] for i in self.data.get("instances") or [] if i.get("support")})
         return found
 
     def set(self, section: str, value: Any) -> None:

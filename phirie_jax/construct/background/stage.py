@@ -181,7 +181,7 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifes
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
-    supports = manifest.supports()
+    supports = {k: Support.from_record(r) for k, r in manifest.support_records().items()}
     fills = []
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
