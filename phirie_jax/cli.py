@@ -8,6 +8,8 @@ the CLI, the configs and their documentation never drift apart.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import inspect
 import json
 import sys
 from pathlib import Path
@@ -16,16 +18,27 @@ from typing import Annotated, Literal
 import tyro
 
 from phirie_jax.construct.physics.config import PhysicsConfig
-from phirie_jax.errors import OptionError, SceneInputError, StageError
+from phirie_jax.errors import ConfigValueError, OptionError, SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig
+from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.pipeline import ConvertConfig
+from phirie_jax.ranges import (
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    Each,
+    check_option,
+    check_options,
+    deferred_checks,
+    resume_checks,
+)
 
 Scene = Annotated[Path, tyro.conf.Positional]
 
 
 def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = None,
-         json_out: Annotated[bool, tyro.conf.arg(name="json")] = False) -> None:
+         json_out: Annotated[bool, tyro.conf.arg(name="json")] = False, allow_outside_paths: bool = False) -> None:
     """Report what a scene folder (or a Gaussian PLY) holds: layout, Gaussians, cameras,
     images, surface mesh, masks, candidates and scene bounds.
 
@@ -34,11 +47,13 @@ def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = Non
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: surface mesh to use instead of the one found in the folder.
         json_out: print the facts as JSON instead of a table.
+        allow_outside_paths: read images the cameras name outside the scene folder (refused by default).
     """
     from phirie_jax.info import scene_facts
     from phirie_jax.io.scene import load_scene
 
-    facts = scene_facts(load_scene(scene, gaussians=gaussians, surface=surface))
+    with outside_paths_allowed(allow_outside_paths):
+        facts = scene_facts(load_scene(scene, gaussians=gaussians, surface=surface))
     if json_out:
         print(json.dumps(facts, indent=2))
         return
@@ -75,6 +90,8 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
             hours on a CPU).
     """
 
+    check_option("--seed", seed, NON_NEGATIVE)
+    check_option("--fit-steps", fit_steps, AT_LEAST_ONE)
     from rich.console import Console
 
     from phirie_jax.synthetic import synthesize
@@ -101,7 +118,7 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
 
 def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
            gaussians: Path | None = None,
-           background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+           background: tuple[float, float, float] = (0.0, 0.0, 0.0), allow_outside_paths: bool = False) -> None:
     """Render a scene's Gaussians from one of its cameras to a PNG.
 
     Args:
@@ -111,7 +128,10 @@ def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
         width: output width in pixels (height follows the camera's aspect); default: the camera's.
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         background: background colour, rgb in [0, 1].
+        allow_outside_paths: accept cameras that name images outside the scene folder (refused by default).
     """
+    check_option("--width", width, AT_LEAST_ONE)
+    check_option("--background", background, Each(FRACTION, count=3))
     import numpy as np
 
     from phirie_jax.errors import SceneInputError
@@ -119,7 +139,8 @@ def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
     from phirie_jax.render import render as render_camera
     from phirie_jax.synthetic.scene import write_png
 
-    loaded = load_scene(scene, gaussians=gaussians, check_images=False)
+    with outside_paths_allowed(allow_outside_paths):
+        loaded = load_scene(scene, gaussians=gaussians, check_images=False)
     cameras = loaded.require_cameras()
     if not 0 <= camera < len(cameras):
         raise SceneInputError(loaded.camera_source, "--camera",
@@ -170,7 +191,8 @@ def _print_timings(manifest: dict) -> None:
 
 def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            observe_width: int | None = None, config: ObserveConfig = ObserveConfig()) -> None:
+            observe_width: int | None = None, config: ObserveConfig = ObserveConfig(),
+            allow_outside_paths: bool = False) -> None:
     """Scene Observation alone (after the frame: up and metres): masks → first-hit lifting onto
     the surface → voxel association into object instances (manifest.json `instances`,
     observe/instance_<id>.npz).
@@ -184,11 +206,14 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: scene surface mesh to use instead of the one found (none: built from the splats).
         frame: the capture's up and scale, when known (else estimated and recorded).
+        observe_width: observation's working width in pixels, whatever the photos' size
+            (same as --config.working-width; 0 = the photos' size).
         config: observation parameters (defaults: the paper's numbers).
+        allow_outside_paths: accept cameras that name images outside the scene folder (refused by default).
     """
-
+    config = _with_observe_width(config, observe_width)
     manifest = _run_stages(scene, out, ConvertConfig(observe=config), masks, gaussians, surface, frame,
-                           ("observe",))
+                           ("observe",), allow_outside_paths)
     _print_frame(manifest)
     _print_instances(manifest)
     _print_outcome(manifest)
@@ -197,7 +222,8 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            observe_width: int | None = None, config: ConvertConfig = ConvertConfig()) -> None:
+            observe_width: int | None = None, config: ConvertConfig = ConvertConfig(),
+            allow_outside_paths: bool = False) -> None:
     """Scene → interactive scene: frame (metres, +z up) → observe → objects → physics →
     background, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
     Gaussians, checks; collision, scene.xml, URDFs, drop tests; background.ply with the objects
@@ -213,10 +239,11 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         observe_width: observation's working width in pixels, whatever the photos' size
             (same as --config.observe.working-width; 0 = the photos' size).
         config: every stage's parameters (defaults: the paper's numbers).
+        allow_outside_paths: accept cameras (transforms.json frames, COLMAP image names) that name
+            images outside the scene folder; refused by default, before anything reads them.
     """
-    if observe_width is not None:
-        config = dataclasses.replace(config, observe=dataclasses.replace(config.observe, working_width=observe_width))
-    manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None)
+    config = dataclasses.replace(config, observe=_with_observe_width(config.observe, observe_width))
+    manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None, allow_outside_paths)
     _print_frame(manifest)
     _print_instances(manifest)
     _print_objects(manifest)
@@ -225,8 +252,16 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     _print_timings(manifest)
 
 
+def _with_observe_width(config: ObserveConfig, observe_width: int | None) -> ObserveConfig:
+    """``--observe-width`` (checked here: the config's own check would name --config...working-width)."""
+    if observe_width is None:
+        return config
+    check_option("--observe-width", observe_width, NON_NEGATIVE)
+    return dataclasses.replace(config, working_width=observe_width)
+
+
 def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians, surface, frame: FrameConfig,
-                stages: tuple[str, ...] | None) -> dict:
+                stages: tuple[str, ...] | None, allow_outside_paths: bool) -> dict:
     """``run_convert`` with a spinner on a terminal, else one line per stage as it starts."""
     import time
 
@@ -234,18 +269,19 @@ def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians,
 
     from phirie_jax.pipeline import run_convert
 
+    options = dict(masks=masks, gaussians=gaussians, surface=surface, frame=frame, stages=stages,
+                   allow_outside_paths=allow_outside_paths)
     console = Console()
     if console.is_terminal:
         with console.status("converting") as status:
-            return run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface, frame=frame,
-                               stages=stages, progress=lambda stage: status.update(f"converting: {stage}"))
+            return run_convert(scene, out, config, progress=lambda stage: status.update(f"converting: {stage}"),
+                               **options)
     start = time.perf_counter()
 
     def line(stage: str) -> None:
         print(f"phirie: {stage} (at {time.perf_counter() - start:.0f} s)", flush=True)
 
-    manifest = run_convert(scene, out, config, masks=masks, gaussians=gaussians, surface=surface, frame=frame,
-                           stages=stages, progress=line)
+    manifest = run_convert(scene, out, config, progress=line, **options)
     print(f"phirie: done in {time.perf_counter() - start:.0f} s", flush=True)
     return manifest
 
@@ -341,8 +377,12 @@ def simulate(out_dir: Annotated[Path, tyro.conf.Positional], out: Path = Path("r
     from phirie_jax.interact.environment import Environment
     from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
 
+    try:
+        config = RolloutConfig(frames=frames, fps=fps, camera=camera, width=width, speed=speed, shoot_at=shoot)
+    except ConfigValueError as err:  # the options are the config's fields, --shoot for shoot_at
+        option = "--shoot" if err.field == "shoot_at" else "--" + err.field.replace("_", "-")
+        raise OptionError(option, f"expected {err.expected}", err.shown) from None
     env = Environment.load(out_dir)
-    config = RolloutConfig(frames=frames, fps=fps, camera=camera, width=width, speed=speed, shoot_at=shoot)
     with Console().status("simulating") as status:
         result = rollout(env, config, on_frame=lambda i: status.update(f"frame {i + 1}/{frames}"))
     write_video(out, result["frames"], fps)
@@ -360,6 +400,7 @@ def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large
         preset: synthetic scene preset.
         seed: synthetic scene seed.
     """
+    check_option("--seed", seed, NON_NEGATIVE)
     from phirie_jax.demo import run_demo
 
     run_demo(out, preset=preset, seed=seed)
@@ -369,13 +410,35 @@ COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
             "convert": convert, "droptest": droptest, "simulate": simulate, "demo": demo}
 
 
+def _options_checked(command):
+    """``command`` with its ``--config`` options checked before it starts.
+
+    ``main`` has tyro build the configs with their range checks deferred (tyro would box a
+    config's ValueError and name the config, not the option); here, first thing, the checks
+    resume and run on the whole config, so a bad value is one line naming its option.
+    """
+    signature = inspect.signature(command)
+
+    @functools.wraps(command)
+    def checked(*args, **kwargs):
+        config = signature.bind_partial(*args, **kwargs).arguments.get("config")
+        if config is None:
+            resume_checks()
+        else:
+            check_options(config, "--config")
+        return command(*args, **kwargs)
+
+    return checked
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
-        tyro.extras.subcommand_cli_from_dict(
-            COMMANDS, prog="phirie", args=argv,
-            description="Turn a 3D Gaussian Splatting capture into an interactive simulation scene.",
-        )
-    except (SceneInputError, OptionError) as err:
+        with deferred_checks():
+            tyro.extras.subcommand_cli_from_dict(
+                {name: _options_checked(command) for name, command in COMMANDS.items()}, prog="phirie", args=argv,
+                description="Turn a 3D Gaussian Splatting capture into an interactive simulation scene.",
+            )
+    except (SceneInputError, OptionError, ConfigValueError) as err:
         print(f"phirie: error: {err}", file=sys.stderr)
         return 2
     except StageError as err:
@@ -384,6 +447,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("phirie: interrupted", file=sys.stderr)
         return 130
+    except OSError as err:  # a path that cannot be read or written: the system's one line says which
+        print(f"phirie: error: {err}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -42,14 +42,39 @@ class NativeLibraryError(RuntimeError):
         self.signal = signal
         super().__init__(f"{library} {problem}")
 
-class OptionError(ValueError):
-    """An option that cannot be used. The message is one line: ``--OPTION: VALUE (expected ...)``;
-    the CLI prints it without a traceback and exits non-zero."""
 
-    def __init__(self, option: str, problem: str):
+class OptionError(ValueError):
+    """An option that cannot be used. The message is one line: ``--OPTION: VALUE (expected ...)``,
+    or ``--OPTION VALUE: expected ...`` when ``value`` is given; the CLI prints it without a
+    traceback and exits non-zero."""
+
+    def __init__(self, option: str, problem: str, value: str | None = None):
         self.option = option
         self.problem = problem
-        super().__init__(f"{option}: {problem}")
+        self.value = value
+        super().__init__(f"{option}: {problem}" if value is None else f"{option} {value}: {problem}")
+
+    def __reduce__(self):
+        return type(self), (self.option, self.problem, self.value)
+
+
+class ConfigValueError(ValueError):
+    """A config field outside its valid range: ``ObserveConfig.voxel -1: expected > 0``.
+
+    ``owner`` is the config's class name, ``field`` the field (dotted for a nested one, as in
+    ``search.num_yaws``), ``shown`` the value as written on a command line and ``expected`` the
+    range; the CLI turns it into an ``OptionError`` naming the whole option.
+    """
+
+    def __init__(self, owner: str, field: str, shown: str, expected: str):
+        self.owner = owner
+        self.field = field
+        self.shown = shown
+        self.expected = expected
+        super().__init__(f"{owner}.{field} {shown}: expected {expected}")
+
+    def __reduce__(self):
+        return type(self), (self.owner, self.field, self.shown, self.expected)
 
 
 class StageError(RuntimeError):

@@ -30,6 +30,19 @@ OBJECT_URDF = "object.urdf"
 COLLISION = "collision"
 
 
+# The folders the stages write files into (globs, relative to the output folder): where an
+# interrupted write may have left a temporary (``io.atomic.remove_temporaries``).
+WRITTEN_FOLDERS = (".", "observe", f"{OBJECTS}/*", f"{OBJECTS}/*/{COLLISION}", "background", BACKGROUND_TARGETS)
+
+
+def written_folders(out_dir: str | Path) -> list[Path]:
+    """The existing folders of ``WRITTEN_FOLDERS`` in ``out_dir``."""
+    out_dir = Path(out_dir)
+    found = [out_dir / p for p in WRITTEN_FOLDERS if "*" not in p] + [
+        match for p in WRITTEN_FOLDERS if "*" in p for match in sorted(out_dir.glob(p))]
+    return [f for f in found if f.is_dir() and not f.is_symlink()]
+
+
 def object_dir(object_id: int) -> Path:
     """``objects/<id>`` (relative to the output folder)."""
     return Path(OBJECTS) / str(object_id)

@@ -13,10 +13,15 @@ JAX threads. The call, its arguments and the result travel pickled through pipes
 arrays included); the child's stdout and stderr are the parent's, so the library's own
 messages still reach the user. The cost is the interpreter's start and the imports of the
 function's module (measured in ``tests/observe/test_native.py``).
+
+A child never outlives its parent: ``die_with_parent`` asks Linux to kill it when the parent
+ends, however it ends (``kill -9`` included), so minutes of native work do not go on orphaned.
+The CoACD worker pool (``construct.physics.stage``) starts its workers with it too.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import pickle
 import signal as signal_mod
@@ -32,8 +37,27 @@ from phirie_jax.errors import NativeLibraryError
 _BOOTSTRAP = ("import pickle, sys\n"
               "stream = sys.stdin.buffer\n"
               "sys.path[:0] = pickle.load(stream)\n"
-              "from phirie_jax.native import serve\n"
+              "from phirie_jax.native import die_with_parent, serve\n"
+              "die_with_parent(int(sys.argv[2]))\n"
               "serve(stream, int(sys.argv[1]))\n")
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """(In a child.) Be killed (SIGKILL) when the process ``parent_pid`` that started this one
+    ends; exit now if it has already ended. Linux only (``prctl(PR_SET_PDEATHSIG)``); elsewhere
+    nothing is done.
+
+    The signal follows the thread that started the child: ``run_isolated`` and the worker pool
+    start their children from the thread that waits for them, so it lives as long as they work.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)  # this process's own symbols: libc's prctl among them
+    if libc.prctl(_PR_SET_PDEATHSIG, signal_mod.SIGKILL, 0, 0, 0) != 0:
+        return  # refused (a restricted sandbox): the child can then outlive a killed parent
+    if os.getppid() != parent_pid:  # the parent died before the request was made
+        os._exit(1)
 
 
 def serve(stream, answer_fd: int) -> None:
@@ -77,8 +101,8 @@ def run_isolated(library: str, fn, *args, description: str | None = None, **kwar
     payload = pickle.dumps((fn, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)  # fails here, not in the child
     read_fd, write_fd = os.pipe()
     try:
-        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd)], stdin=subprocess.PIPE,
-                                 pass_fds=(write_fd,))
+        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd), str(os.getpid())],
+                                 stdin=subprocess.PIPE, pass_fds=(write_fd,))
     finally:
         os.close(write_fd)  # the child holds the only writing end: its death reads as EOF here
     chunks: list[bytes] = []

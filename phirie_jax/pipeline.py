@@ -7,12 +7,20 @@ inpainting targets, fill). The cameras, in the world frame, are written beside t
 (``transforms.json``) so the output folder is self-contained. A stage that fails is recorded
 in the manifest (``failed_stage``) and raised as a ``StageError`` (bad input stays a
 ``SceneInputError``); the stages after it do not run.
+
+Before the output folder is created or touched, the inputs are checked (``check_output``,
+``check_inputs``): a Gaussian PLY given as the scene, a missing Gaussian PLY or cameras, a mask
+source or surface the scene cannot give, an output path that is a file or the scene folder
+itself. A bad input found only later by a stage removes the output folder when this run
+created it, so an input error never leaves a partial output behind. A run first removes the
+temporaries an interrupted earlier run left in the output folder (``io.atomic``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -23,13 +31,16 @@ from phirie_jax import layout
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.physics.config import PhysicsConfig
-from phirie_jax.errors import SceneInputError, StageError
+from phirie_jax.errors import OptionError, SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig, merged, scene_frame_config
 from phirie_jax.frame.resolve import SceneFrame, resolve_frame, with_known_size
-from phirie_jax.io.scene import load_scene
+from phirie_jax.io.atomic import remove_temporaries
+from phirie_jax.io.camera import outside_paths_allowed
+from phirie_jax.io.scene import find_gaussians, load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
 from phirie_jax.manifest import Manifest
 from phirie_jax.observe.config import ObserveConfig
+from phirie_jax.observe.masks import check_mask_source
 from phirie_jax.types import SceneInput
 
 
@@ -152,6 +163,75 @@ STAGES: dict[str, Callable[[Run], Run]] = {
     "frame": _frame, "observe": _observe, "objects": _objects, "physics": _physics, "background": _background}
 
 
+# What io.scene reads cameras from, to tell a lone PLY's folder that holds them.
+CAMERA_FILES = ("transforms.json", "sparse", "dslr")
+
+
+def refuse_lone_ply(scene_path: Path) -> None:
+    """A Gaussian PLY given as the scene has no cameras to observe with: say so, and what to pass."""
+    path = Path(scene_path).absolute()
+    if not (path.is_file() and path.suffix.lower() == ".ply"):
+        return
+    folder = path.parent
+    if not any((folder / name).exists() for name in CAMERA_FILES):
+        hint = f"a scene folder with cameras and images, and --gaussians {path}"
+    elif find_gaussians(folder) == path:
+        hint = f"its scene folder, {folder}, which holds it and the cameras"
+    else:
+        hint = f"its scene folder, {folder}, which holds the cameras, and --gaussians {path}"
+    raise SceneInputError(path, None, f"a Gaussian PLY alone has no cameras (expected {hint})")
+
+
+def check_output(out_dir: Path, scene_path: Path) -> None:
+    """``--out`` can be a folder of outputs: not a file (nor under one), not the scene folder."""
+    out_dir = Path(out_dir)
+    for path in (out_dir, *out_dir.absolute().parents):
+        if path.exists():
+            if not path.is_dir():
+                what = "is a file" if path == out_dir else f"{path} is a file"
+                raise OptionError("--out", f"{what} (expected a folder: a new one or an earlier run's output)",
+                                  str(out_dir))
+            break
+    if out_dir.exists() and out_dir.resolve() == Path(scene_path).resolve():
+        raise OptionError("--out", "the scene folder itself (expected another folder: the outputs would "
+                          "overwrite the scene's own transforms.json)", str(out_dir))
+
+
+def check_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
+                 stages: tuple[str, ...] | None) -> None:
+    """What the stages to run need from the inputs, checked before the output folder is touched;
+    the errors are the ones the stages would raise later."""
+    def runs(name: str) -> bool:
+        return stages is None or name in stages
+
+    scene.require_gaussians()
+    scene.require_cameras()
+    if runs("observe"):
+        check_mask_source(scene, masks)
+        if config.observe.surface_source == "mesh" and scene.surface_mesh is None:
+            raise SceneInputError(scene.root, "surface", "no scan mesh (expected --surface PATH, surface.ply, "
+                                  "mesh.ply or scans/mesh_aligned_0.05.ply) and surface_source is 'mesh'")
+    external = config.background.targets.external
+    if runs("background") and external is not None and not Path(external).is_dir():
+        raise SceneInputError(external, "targets", "not a folder (expected <image stem>.png files)")
+
+
+def _missing_root(out_dir: Path) -> Path | None:
+    """The outermost folder of ``out_dir`` that does not exist yet (what a run would create), or None."""
+    missing = None
+    for path in (out_dir, *out_dir.absolute().parents):
+        if path.exists():
+            break
+        missing = path
+    return missing
+
+
+def _clean(out_dir: Path) -> None:
+    """Remove the temporaries a killed earlier run left where the stages write."""
+    for folder in layout.written_folders(out_dir):
+        remove_temporaries(folder)
+
+
 def _start(scene: SceneInput, out_dir: Path) -> None:
     """The output folder's manifest with the scene it converts."""
     manifest = Manifest.load_or_create(out_dir)
@@ -170,28 +250,39 @@ def _failed(out_dir: Path, stage: str, err: BaseException) -> None:
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
                 masks: str | Path | None = None, gaussians: str | Path | None = None,
                 surface: str | Path | None = None, frame: FrameConfig = FrameConfig(), progress=None,
-                stages: tuple[str, ...] | None = None) -> dict:
+                stages: tuple[str, ...] | None = None, allow_outside_paths: bool = False) -> dict:
     """Run the stages of ``STAGES`` (all, or those named in ``stages``; the frame stage always
     runs) on ``scene_dir``; returns the final manifest (a dict). ``progress(stage)`` is called
-    as each stage starts."""
+    as each stage starts. ``allow_outside_paths``: cameras may name images outside the scene
+    folder (refused by default)."""
     start = time.perf_counter()
     frame.checked()
-    scene = load_scene(scene_dir, gaussians=gaussians, surface=surface)
-    run = Run(scene, Path(out_dir), config, merged(scene_frame_config(scene.root), frame), masks)
-    _start(scene, run.out_dir)
-    for name, stage in STAGES.items():
-        if stages is not None and name != "frame" and name not in stages:
-            continue
-        if progress is not None:
-            progress(name)
-        try:
-            run = stage(run)
-        except SceneInputError as err:
-            _failed(run.out_dir, name, err)
-            raise
-        except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
-            _failed(run.out_dir, name, err)
-            raise StageError(name, err) from err
+    out_dir = Path(out_dir)
+    check_output(out_dir, Path(scene_dir))
+    refuse_lone_ply(Path(scene_dir))
+    with outside_paths_allowed(allow_outside_paths):
+        scene = load_scene(scene_dir, gaussians=gaussians, surface=surface)
+        run = Run(scene, out_dir, config, merged(scene_frame_config(scene.root), frame), masks)
+        check_inputs(scene, config, masks, stages)
+        created = _missing_root(out_dir)
+        _clean(out_dir)
+        _start(scene, run.out_dir)
+        for name, stage in STAGES.items():
+            if stages is not None and name != "frame" and name not in stages:
+                continue
+            if progress is not None:
+                progress(name)
+            try:
+                run = stage(run)
+            except SceneInputError as err:
+                if created is not None:  # an input error leaves no partial output behind
+                    shutil.rmtree(created, ignore_errors=True)
+                else:
+                    _failed(run.out_dir, name, err)
+                raise
+            except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
+                _failed(run.out_dir, name, err)
+                raise StageError(name, err) from err
     manifest = Manifest.load_or_create(run.out_dir)
     manifest.record_timing("convert", time.perf_counter() - start)
     manifest.write()

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.interact.environment import Environment
+from phirie_jax.ranges import AT_LEAST_ONE, FRACTION, NON_NEGATIVE, POSITIVE, Each, Range, check_ranges
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,6 +40,11 @@ class RolloutConfig:
     speed: float = 2.5
     shoot_at: tuple[float, float] | None = None
     background: tuple[float, float, float] = (0.62, 0.66, 0.72)
+
+    def __post_init__(self):
+        check_ranges(self, {"frames": AT_LEAST_ONE, "fps": POSITIVE, "camera": NON_NEGATIVE, "width": AT_LEAST_ONE,
+                            "speed": NON_NEGATIVE, "shoot_at": Each(Range(), count=2),
+                            "background": Each(FRACTION, count=3)})
 
 
 def largest_object(env: Environment) -> int | None:

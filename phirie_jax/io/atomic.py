@@ -1,9 +1,16 @@
-"""Write-then-rename, so no output file is ever half-written."""
+"""Write-then-rename, so no output file is ever half-written.
+
+A file is written to ``.NAME.XXXXXXXX.tmp`` beside NAME (``tempfile``'s eight random characters)
+and renamed over NAME once complete. A process killed in between leaves that temporary behind;
+``remove_temporaries`` clears such leftovers from a folder (the next run of the same output).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
+import stat
 import tempfile
 from pathlib import Path
 from typing import IO, Iterator
@@ -14,6 +21,10 @@ def ordinary_file_mode() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return 0o666 & ~mask
+
+
+# The names ``_stage`` makes: ``.`` + NAME + ``.`` + tempfile's 8 random characters + ``.tmp``.
+TEMPORARY_NAME = re.compile(r"\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp")
 
 
 def _stage(folder: Path, name: str) -> tuple[int, str]:
@@ -70,3 +81,19 @@ def write_files(folder: Path, files: dict[str, bytes]) -> None:
     finally:
         for _, tmp in staged:
             tmp.unlink(missing_ok=True)
+
+
+def remove_temporaries(folder: str | Path) -> list[Path]:
+    """Remove the temporaries an interrupted write left in ``folder`` (not its subfolders); returns them.
+
+    Only regular files named like ``_stage``'s temporaries are removed, nothing else. Meant for a
+    folder one run writes at a time: a write in progress elsewhere would lose its temporary.
+    """
+    folder = Path(folder)
+    removed = []
+    for entry in sorted(os.scandir(folder), key=lambda e: e.name) if folder.is_dir() else ():
+        if TEMPORARY_NAME.fullmatch(entry.name) and stat.S_ISREG(entry.stat(follow_symlinks=False).st_mode):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+    return removed

@@ -9,6 +9,10 @@ and reported; the renderer itself is pinhole.
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +25,35 @@ from phirie_jax.types import Camera
 RIGID_TOLERANCE = 1e-3
 # Below this the rotation is already orthonormal to float precision and kept bit for bit.
 _ORTHONORMAL_EXACT = 1e-12
+
+
+_outside_allowed: ContextVar[bool] = ContextVar("phirie_outside_paths_allowed", default=False)
+
+
+@contextlib.contextmanager
+def outside_paths_allowed(allowed: bool = True) -> Iterator[None]:
+    """Inside, camera files may name images outside their folder (``--allow-outside-paths``);
+    by default such an image is refused before anything opens it."""
+    token = _outside_allowed.set(allowed)
+    try:
+        yield
+    finally:
+        _outside_allowed.reset(token)
+
+
+def check_inside(image_path: Path, folder: Path, source: Path, field: str, written: str) -> None:
+    """Refuse an image a camera file (``source``) names outside ``folder``, the folder its paths are
+    relative to: a ``transforms.json`` frame or a COLMAP image name of ``../../etc/hostname`` or
+    ``/etc/hostname`` would otherwise be opened and read. ``written`` is the path as the file
+    has it. The test is on the paths as written (``..`` resolved, symbolic links not followed:
+    a link inside the folder is the folder's own choice). ``outside_paths_allowed`` lifts it.
+    """
+    if _outside_allowed.get():
+        return
+    folder, image = os.path.abspath(folder), os.path.abspath(image_path)
+    if os.path.commonpath([folder, image]) != folder:
+        raise SceneInputError(source, field, f"{written!r} is outside {folder} (expected an image inside the "
+                              "scene folder; --allow-outside-paths reads it anyway)")
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

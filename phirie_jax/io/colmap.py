@@ -22,7 +22,7 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_files
-from phirie_jax.io.camera import intrinsics_matrix, sort_by_name
+from phirie_jax.io.camera import check_inside, intrinsics_matrix, sort_by_name
 from phirie_jax.types import Camera
 
 SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -82,7 +82,8 @@ def read_colmap_model(
 
     Each of ``cameras``, ``images`` and ``points3D`` is read from its ``.bin`` file when
     present, else from its ``.txt`` file (COLMAP's preference); ``points3D`` is optional.
-    When ``image_dir`` is given, ``Camera.image_path`` is ``image_dir / name`` (absolute).
+    When ``image_dir`` is given, ``Camera.image_path`` is ``image_dir / name`` (absolute); a name
+    leading outside ``image_dir`` is refused unless ``camera.outside_paths_allowed``.
     """
     sparse_dir = Path(sparse_dir)
     cameras_path = _find(sparse_dir, "cameras", required=True)
@@ -101,6 +102,8 @@ def read_colmap_model(
                 images_path, where, f"name {image.name!r} repeats image {seen[image.name]} (expected unique names)"
             )
         seen[image.name] = image.image_id
+        if root is not None:
+            check_inside(root / image.name, root, images_path, f"{where}: name", image.name)
         cam = intrinsics[image.camera_id]
         K, distortion = _intrinsics(cam)
         cameras.append(Camera(

@@ -25,7 +25,7 @@ import numpy as np
 
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_files
-from phirie_jax.io.camera import RIGID_TOLERANCE, intrinsics_matrix, rigid, sort_by_name
+from phirie_jax.io.camera import RIGID_TOLERANCE, check_inside, intrinsics_matrix, rigid, sort_by_name
 from phirie_jax.io.images import image_size
 from phirie_jax.io.jsonfile import read_json_object
 from phirie_jax.types import Camera
@@ -44,7 +44,8 @@ def read_transforms_json(
     ``file_path`` is relative to the json's folder, or to ``image_root`` when given (as
     ScanNet++'s bare file names need). Frames flagged ``is_bad`` are dropped only when
     ``skip_bad``. ``Camera.image_path`` is the absolute image path (with the extension
-    found on disk for Blender's extension-less paths).
+    found on disk for Blender's extension-less paths). A path outside that folder (``..`` or
+    absolute) is refused unless ``camera.outside_paths_allowed``.
     """
     path = Path(path)
     meta = read_json_object(path, "a JSON object with a 'frames' list")
@@ -67,6 +68,7 @@ def read_transforms_json(
     cameras = []
     for (where, frame), p in zip(entries, parts):
         image_path = Path(os.path.abspath(Path(*p) if p[0] == "/" else base.joinpath(*p)))
+        check_inside(image_path, base, path, f"{where}: file_path", frame["file_path"])
         name = p[-1] if p[0] == "/" else "/".join(p[1:] if strip else p)
         if not image_path.is_file():
             for ext in _IMAGE_EXTENSIONS:

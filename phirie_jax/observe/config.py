@@ -8,6 +8,18 @@ from __future__ import annotations
 
 import dataclasses
 
+from phirie_jax.ranges import (
+    ANGLE_DEG,
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    POSITIVE_FRACTION,
+    Range,
+    at_least,
+    check_ranges,
+)
+
 
 @dataclasses.dataclass(frozen=True)
 class FloaterConfig:
@@ -32,10 +44,8 @@ class FloaterConfig:
     isolated_factor: float = 10.0
 
     def __post_init__(self):
-        if not (0 <= self.min_opacity < 1 and self.large_mads > 0 and self.neighbours >= 1
-                and self.isolated_factor > 1):
-            raise ValueError("floaters: need 0 ≤ min_opacity < 1, large_mads > 0, neighbours ≥ 1 and "
-                             f"isolated_factor > 1 (got {self})")
+        check_ranges(self, {"min_opacity": Range(0, 1, high_open=True), "large_mads": POSITIVE,
+                            "neighbours": AT_LEAST_ONE, "isolated_factor": Range(1, low_open=True)})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,10 +101,11 @@ class SurfaceConfig:
     def __post_init__(self):
         if self.backend not in ("jax", "open3d"):
             raise ValueError(f"surface backend {self.backend!r} (expected 'jax' or 'open3d')")
-        if not (self.voxel > 0 and self.truncation >= self.voxel and self.view_stride >= 1):
-            raise ValueError("surface: need voxel > 0, truncation ≥ voxel and view_stride ≥ 1")
-        if not self.memory_budget_gb > 0:
-            raise ValueError(f"surface: memory_budget_gb {self.memory_budget_gb} (expected > 0)")
+        check_ranges(self, {
+            "voxel": POSITIVE, "truncation": at_least(self.voxel, "voxel"), "min_alpha": POSITIVE_FRACTION,
+            "view_stride": AT_LEAST_ONE, "depth_max": POSITIVE, "block": AT_LEAST_ONE, "frames_per_step": AT_LEAST_ONE,
+            "min_weight": POSITIVE, "snap_radius": NON_NEGATIVE, "snap_neighbours": AT_LEAST_ONE,
+            "snap_min_opacity": FRACTION, "memory_budget_gb": POSITIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +145,13 @@ class AutoMaskConfig:
     max_object_height: float = 0.6
     max_base_gap: float = 0.03
     min_object_height: float = 0.03
+
+    def __post_init__(self):
+        check_ranges(self, {
+            "sample_stride": AT_LEAST_ONE, "sample_voxel": POSITIVE, "up_max_tilt_deg": ANGLE_DEG,
+            "plane_threshold": POSITIVE, "min_support_area": POSITIVE, "footprint_cell": POSITIVE,
+            "cluster_eps": POSITIVE, "min_cluster_points": AT_LEAST_ONE, "max_object_extent": POSITIVE,
+            "max_object_height": POSITIVE, "max_base_gap": NON_NEGATIVE, "min_object_height": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,13 +212,8 @@ class ObserveConfig:
     def __post_init__(self):
         if self.surface_source not in ("auto", "mesh", "splats"):
             raise ValueError(f"surface_source {self.surface_source!r} (expected 'auto', 'mesh' or 'splats')")
-        if not (0 < self.overlap <= 1):
-            raise ValueError(f"overlap {self.overlap} (expected in (0, 1])")
-        if self.support_clearance is not None and self.support_clearance < 0:
-            raise ValueError(f"support_clearance {self.support_clearance} (expected ≥ 0)")
-        if not (0 <= self.silhouette_agreement <= 1):
-            raise ValueError(f"silhouette_agreement {self.silhouette_agreement} (expected in [0, 1])")
-        if self.working_width < 0:
-            raise ValueError(f"working_width {self.working_width} (expected ≥ 0; 0 = the photos' size)")
-        if self.min_views < 1 or self.pixel_stride < 1 or self.mask_erosion_px < 0:
-            raise ValueError("need min_views ≥ 1, pixel_stride ≥ 1 and mask_erosion_px ≥ 0")
+        check_ranges(self, {
+            "voxel": POSITIVE, "overlap": POSITIVE_FRACTION, "min_views": AT_LEAST_ONE, "pixel_stride": AT_LEAST_ONE,
+            "mask_erosion_px": NON_NEGATIVE, "min_proposal_points": AT_LEAST_ONE, "points_voxel": POSITIVE,
+            "max_points": AT_LEAST_ONE, "silhouette_agreement": FRACTION, "support_clearance": NON_NEGATIVE,
+            "working_width": Range(0, bound="0 = the photos' size")})

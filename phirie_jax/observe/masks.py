@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.types import Camera
+from phirie_jax.types import Camera, SceneInput
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,16 +111,35 @@ def file_masks(cameras: tuple[Camera, ...], paths: tuple[Path | None, ...]) -> I
         yield ViewMasks(view, labels, _segments_of(labels, identity=True), str(path))
 
 
-def external_masks(folder: Path, cameras: tuple[Camera, ...]) -> Iterator[ViewMasks | ViewFailure]:
-    """An external segmenter's per-image PNG (+ JSON) folder; see the module docstring."""
-    folder = Path(folder)
+def check_mask_source(scene: SceneInput, masks: str | Path | None) -> None:
+    """Refuse a ``--masks`` source the scene cannot give, with the error observation would raise,
+    but before anything is written. None (the default) and "auto" always can."""
+    if masks is None or masks == "auto":
+        return
+    if masks == "files":
+        if scene.masks is None and (scene.segments_anno is None or scene.surface_mesh is None):
+            raise SceneInputError(scene.root / "masks", "--masks files",
+                                  "no masks/ folder and no ScanNet++ annotations (use --masks auto or a folder)")
+        return
+    _mask_pngs(Path(masks))
+
+
+def _mask_pngs(folder: Path) -> list[Path]:
+    """The label images of an external segmenter's folder; ``SceneInputError`` if there are none."""
     if not folder.is_dir():
         raise SceneInputError(folder, "--masks", "folder not found (expected 'files', 'auto' or a folder "
                               "of <image stem>.png label images with optional .json scores)")
-    by_stem = {Path(c.name).stem: i for i, c in enumerate(cameras)}
     pngs = sorted(folder.glob("*.png"))
     if not pngs:
         raise SceneInputError(folder, "--masks", "no .png label images in the folder")
+    return pngs
+
+
+def external_masks(folder: Path, cameras: tuple[Camera, ...]) -> Iterator[ViewMasks | ViewFailure]:
+    """An external segmenter's per-image PNG (+ JSON) folder; see the module docstring."""
+    folder = Path(folder)
+    pngs = _mask_pngs(folder)
+    by_stem = {Path(c.name).stem: i for i, c in enumerate(cameras)}
     for path in pngs:
         view = by_stem.get(path.stem)
         if view is None:

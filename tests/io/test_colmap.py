@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix, outside_paths_allowed
 from phirie_jax.io.colmap import (
     MODEL_NAMES,
     SUPPORTED_MODELS,
@@ -137,6 +137,23 @@ def test_points_are_optional_and_image_dir_sets_paths(tmp_path):
     cameras, points = read_colmap_model(tmp_path, image_dir=tmp_path / "images")
     assert points is None and read_colmap_points(tmp_path) is None
     assert cameras[0].image_path == tmp_path / "images" / "x.png"
+
+
+@pytest.mark.parametrize("name", ["../../etc/hostname", "/etc/hostname"])
+def test_an_image_name_outside_the_image_folder_is_refused(tmp_path, name):
+    """COLMAP names are relative to the image folder: one leading out of it (``..`` or absolute)
+    is refused with one line unless ``outside_paths_allowed``."""
+    rng = np.random.default_rng(5)
+    write_colmap_text(tmp_path, [model_camera("PINHOLE", "x.png", rng)])
+    text = (tmp_path / "images.txt").read_text().replace(" x.png", f" {name}")
+    (tmp_path / "images.txt").write_text(text)
+    with pytest.raises(SceneInputError) as err:
+        read_colmap_model(tmp_path, image_dir=tmp_path / "images")
+    assert str(err.value) == (f"{tmp_path / 'images.txt'}: image 1: name: {name!r} is outside {tmp_path / 'images'} "
+                              "(expected an image inside the scene folder; --allow-outside-paths reads it anyway)")
+    assert read_colmap_model(tmp_path)[0][0].name == name  # no image folder given: nothing to open
+    with outside_paths_allowed():
+        assert read_colmap_model(tmp_path, image_dir=tmp_path / "images")[0][0].name == name
 
 
 def test_binary_is_preferred_and_text_never_shadowed(tmp_path):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.camera import intrinsics_matrix
+from phirie_jax.io.camera import intrinsics_matrix, outside_paths_allowed
 from phirie_jax.io.colmap import read_colmap_model
 from phirie_jax.io.transforms_json import read_transforms_json, write_transforms_json
 from phirie_jax.types import Camera
@@ -309,3 +309,33 @@ def test_bad_files(tmp_path):
         {"file_path": "./images/a.png", "transform_matrix": IDENTITY_AT_Z5}]})
     with pytest.raises(SceneInputError, match="'a.png' appears in more than one frame"):
         read_transforms_json(path)
+
+
+# --- paths outside the folder --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("file_path", ["../outside/a.png", "images/../../outside/a.png", "/ABS/outside/a.png"])
+def test_an_image_outside_the_folder_is_refused_before_it_is_read(tmp_path, file_path):
+    """A frame may not send the reader to ``../../../etc/hostname`` or an absolute path: one line
+    naming the file and frame; the image is never opened (no w/h here, so reading it would be
+    the next step). ``outside_paths_allowed`` reads it."""
+    outside = tmp_path / "outside" / "a.png"
+    write_image(outside, 8, 6)
+    file_path = file_path.replace("/ABS", str(tmp_path))
+    path = write_json(tmp_path / "scene" / "transforms.json",
+                      {"fl_x": 10, "frames": [{"file_path": file_path, "transform_matrix": IDENTITY_AT_Z5}]})
+    with pytest.raises(SceneInputError) as err:
+        read_transforms_json(path)
+    assert str(err.value) == (f"{path}: frames[0]: file_path: {file_path!r} is outside {path.parent} (expected an "
+                              "image inside the scene folder; --allow-outside-paths reads it anyway)")
+    with outside_paths_allowed():
+        (camera,) = read_transforms_json(path)
+    assert camera.image_path == outside and (camera.width, camera.height) == (8, 6)
+    with pytest.raises(SceneInputError, match="is outside"):  # only inside the block
+        read_transforms_json(path)
+
+
+def test_dot_dot_that_stays_inside_the_folder_is_fine(tmp_path):
+    path = write_json(tmp_path / "transforms.json", {"fl_x": 10, "w": 8, "h": 6, "frames": [
+        {"file_path": "images/../frames/a.png", "transform_matrix": IDENTITY_AT_Z5}]})
+    assert read_transforms_json(path)[0].image_path == tmp_path / "frames" / "a.png"

@@ -5,15 +5,21 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from phirie_jax.errors import NativeLibraryError, SceneInputError
 from phirie_jax.native import run_isolated
+from tests.processes import kill_quietly, running, wait_for
 
 OVERHEAD_S = 5.0  # generous bound on one call's start-up on a loaded 2-core CPU (measured ~0.1 s warm)
+GONE_WITHIN_S = 5.0  # a dead parent's child is gone this soon
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def segfault():
@@ -74,3 +80,32 @@ def test_result_and_exceptions_come_back():
         run_isolated("numpy", raise_unpicklable)
     with pytest.raises(SceneInputError, match="scene.ply: x: wrong"):
         run_isolated("numpy", raise_scene_input_error)
+
+
+def sleep_and_report(pid_file: str) -> None:
+    """(In the child.) Record this process's id, then work far longer than the test."""
+    Path(pid_file).write_text(str(os.getpid()))
+    time.sleep(120)
+
+
+PARENT = """
+import sys
+from phirie_jax.native import run_isolated
+from tests.processes import kill_quietly, running, wait_for
+from tests.observe.test_native import sleep_and_report
+run_isolated("Open3D", sleep_and_report, sys.argv[1])
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG) is Linux's")
+def test_the_child_dies_with_a_killed_parent(tmp_path):
+    pid_file = tmp_path / "child.pid"
+    parent = subprocess.Popen([sys.executable, "-c", PARENT, str(pid_file)], cwd=ROOT)
+    assert wait_for(lambda: pid_file.is_file() and pid_file.read_text(), 60), "the child did not start"
+    child = int(pid_file.read_text())
+    try:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        assert wait_for(lambda: not running(child), GONE_WITHIN_S), "the child outlived its killed parent"
+    finally:
+        kill_quietly(child)

@@ -18,6 +18,21 @@ from __future__ import annotations
 
 import dataclasses
 
+from phirie_jax.ranges import (
+    ANGLE_DEG,
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    OPEN_FRACTION,
+    POSITIVE,
+    POSITIVE_FRACTION,
+    Each,
+    Range,
+    check_ranges,
+)
+
+TILE_PX = Range(16, bound="one 16-pixel tile")  # the smallest crop the tiled rasterizer renders
+
 
 @dataclasses.dataclass(frozen=True)
 class RemovalConfig:
@@ -44,8 +59,9 @@ class RemovalConfig:
     statuses: tuple[str, ...] = ("accepted",)
 
     def __post_init__(self):
-        if not (self.obs_radius >= 0 and self.asset_radius >= 0 and self.mask_votes >= 1):
-            raise ValueError("background: need obs_radius ≥ 0, asset_radius ≥ 0 and mask_votes ≥ 1")
+        check_ranges(self, {
+            "obs_radius": NON_NEGATIVE, "asset_radius": NON_NEGATIVE, "mask_votes": AT_LEAST_ONE,
+            "bounds_margin": NON_NEGATIVE, "mask_views": AT_LEAST_ONE, "occlusion_tolerance": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,8 +80,7 @@ class CropConfig:
     margin_px: int = 8
 
     def __post_init__(self):
-        if not self.target_sizes or not self.mask_sizes or min(self.target_sizes + self.mask_sizes) < 16:
-            raise ValueError("background: crop sizes must be given and at least one tile (16 px)")
+        check_ranges(self, {"target_sizes": Each(TILE_PX), "mask_sizes": Each(TILE_PX), "margin_px": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,6 +112,13 @@ class PlaneConfig:
     min_points: int = 30
     min_inlier_fraction: float = 0.3
     min_opacity: float = 0.5
+
+    def __post_init__(self):
+        check_ranges(self, {
+            "ring_inner": NON_NEGATIVE, "ring_outer": Range(self.ring_inner, low_open=True, bound="ring_inner"),
+            "ring_height": POSITIVE, "threshold": POSITIVE, "ransac_iterations": AT_LEAST_ONE,
+            "max_tilt_deg": ANGLE_DEG, "base_tolerance": NON_NEGATIVE, "min_points": Range(3, bound="a plane"),
+            "min_inlier_fraction": FRACTION, "min_opacity": FRACTION})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,8 +154,10 @@ class FillConfig:
     max_disks: int = 40_000
 
     def __post_init__(self):
-        if not (self.grid > 0 and self.margin >= 0 and 0 < self.init_opacity < 1):
-            raise ValueError("background: need grid > 0, margin ≥ 0 and 0 < init_opacity < 1")
+        check_ranges(self, {
+            "grid": POSITIVE, "margin": NON_NEGATIVE, "cover_factor": POSITIVE, "slab": NON_NEGATIVE,
+            "disk_sigma": POSITIVE, "disk_thickness": POSITIVE, "max_disk_sigma": Range(0.25, bound="the lower limit, ¼"),
+            "init_opacity": OPEN_FRACTION, "colour_neighbours": AT_LEAST_ONE, "max_disks": AT_LEAST_ONE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,6 +193,9 @@ class TargetsConfig:
     def __post_init__(self):
         if self.inpaint not in ("telea", "ns"):
             raise ValueError(f"background inpaint {self.inpaint!r} (expected 'telea' or 'ns')")
+        check_ranges(self, {
+            "inpaint_radius": AT_LEAST_ONE, "region_weight": POSITIVE_FRACTION, "region_dilate_px": NON_NEGATIVE,
+            "loss_ring_px": NON_NEGATIVE, "explained_alpha": FRACTION, "plane_depth_tolerance": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,8 +219,9 @@ class RefineConfig:
     lr_scale: float = 0.02
 
     def __post_init__(self):
-        if self.iterations < 0 or not (0 <= self.dssim_weight <= 1):
-            raise ValueError("background: need iterations ≥ 0 and 0 ≤ dssim_weight ≤ 1")
+        check_ranges(self, {
+            "iterations": NON_NEGATIVE, "dssim_weight": FRACTION, "lr_colour": NON_NEGATIVE,
+            "lr_opacity": NON_NEGATIVE, "lr_offset": NON_NEGATIVE, "lr_scale": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,3 +245,6 @@ class BackgroundConfig:
     targets: TargetsConfig = TargetsConfig()
     refine: RefineConfig = RefineConfig()
     seed: int = 0
+
+    def __post_init__(self):
+        check_ranges(self, {"seed": NON_NEGATIVE})

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 from kernels.registration import SearchSpec
+from phirie_jax.ranges import AT_LEAST_ONE, FRACTION, NON_NEGATIVE, POSITIVE, Each, Range, at_most, check_ranges
 
 # The search fields the object stage sets for each call: which axes (own up first, or all six for a
 # batched retry), how many hypotheses go through one vmap, and whether to snap to the support.
@@ -57,10 +58,17 @@ class RegistrationConfig:
         s = self.search
         if s.rotation not in ("full", "yaw"):
             raise ValueError(f"registration rotation {s.rotation!r} (expected 'full' or 'yaw')")
-        if min(s.sweep_model_points, s.icp_model_points) > s.model_points:
-            raise ValueError("registration: sweep/ICP subsets cannot exceed the sampled points")
-        if s.num_yaws < 1 or s.top_k < 1 or not s.scale_multipliers:
-            raise ValueError("registration: need num_yaws ≥ 1, top_k ≥ 1 and a scale multiplier")
+        subset = at_most(s.model_points, "search.model_points", low=1)
+        check_ranges(self, {
+            "tau": POSITIVE, "icp_max_correspondence": POSITIVE, "hypothesis_batch": AT_LEAST_ONE,
+            "min_obs_bucket": AT_LEAST_ONE, "seed": NON_NEGATIVE,
+            "search.num_yaws": AT_LEAST_ONE, "search.scale_multipliers": Each(POSITIVE),
+            "search.top_k": at_most(s.num_yaws * len(s.scale_multipliers), "search.num_yaws × scale multipliers", 1),
+            "search.refine_other_axes": Range(0, 5), "search.model_points": AT_LEAST_ONE,
+            "search.sweep_model_points": subset, "search.icp_model_points": subset,
+            "search.sweep_obs_points": AT_LEAST_ONE, "search.icp_obs_points": AT_LEAST_ONE,
+            "search.score_obs_points": AT_LEAST_ONE, "search.icp_iterations": NON_NEGATIVE,
+            "search.scale_iterations": NON_NEGATIVE, "search.chunk": AT_LEAST_ONE})
         for name in PER_CALL_SEARCH_FIELDS:
             if getattr(s, name) != getattr(SearchSpec(), name):
                 raise ValueError(f"registration.search.{name} is set for each search by the object stage "
@@ -151,3 +159,10 @@ class ObjectsConfig:
                 raise ValueError(f"objects generator {g!r} (expected one of {known} or 'external:<name>')")
         if not self.generators:
             raise ValueError("objects: the candidate pool (generators) is empty")
+        check_ranges(self, {
+            "min_points": AT_LEAST_ONE, "max_residual": POSITIVE, "max_scale_discrepancy": POSITIVE,
+            "min_support": FRACTION, "min_hull_volume": NON_NEGATIVE, "settle_threshold": POSITIVE,
+            "hull_resolution": Range(2), "hull_margin": NON_NEGATIVE, "hull_dilate_px": NON_NEGATIVE,
+            "hull_max_misses": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,
+            "gaussian_radius": NON_NEGATIVE, "base_clearance": NON_NEGATIVE, "fill_spacing": POSITIVE,
+            "fill_min_distance": NON_NEGATIVE, "colour_neighbours": AT_LEAST_ONE})

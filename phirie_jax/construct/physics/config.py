@@ -8,6 +8,22 @@ from __future__ import annotations
 
 import dataclasses
 
+from phirie_jax.errors import ConfigValueError
+from phirie_jax.ranges import (
+    AT_LEAST_ONE,
+    NON_NEGATIVE,
+    OPEN_FRACTION,
+    POSITIVE,
+    POSITIVE_FRACTION,
+    Each,
+    Positions,
+    Range,
+    at_least,
+    at_most,
+    check_ranges,
+    shown,
+)
+
 
 @dataclasses.dataclass(frozen=True)
 class DropTestConfig:
@@ -61,10 +77,11 @@ class DropTestConfig:
     def __post_init__(self):
         if self.backend not in ("auto", "mjx", "mujoco"):
             raise ValueError(f"drop test backend {self.backend!r} (expected 'auto', 'mjx' or 'mujoco')")
-        if not (self.timestep > 0 and self.settle_time >= 0 and self.free_time >= 0):
-            raise ValueError("drop test: need timestep > 0 and non-negative settle/free times")
-        if self.vertex_budget < 4 or not self.part_buckets or sorted(self.part_buckets) != list(self.part_buckets):
-            raise ValueError("drop test: need vertex_budget ≥ 4 and increasing part_buckets")
+        check_ranges(self, {
+            "timestep": POSITIVE, "settle_time": NON_NEGATIVE, "free_time": NON_NEGATIVE, "max_drift": POSITIVE,
+            "min_final_height": Range(), "solver_iterations": AT_LEAST_ONE, "line_search_iterations": AT_LEAST_ONE,
+            "tolerance": NON_NEGATIVE, "vertex_budget": Range(4), "part_buckets": Each(AT_LEAST_ONE, increasing=True),
+            "min_batch": AT_LEAST_ONE, "max_batch": at_least(self.min_batch, "min_batch"), "unroll": AT_LEAST_ONE})
         if self.solver not in ("newton", "cg") or self.jacobian not in ("dense", "sparse"):
             raise ValueError(f"drop test solver {self.solver!r} / jacobian {self.jacobian!r} "
                              "(expected 'newton' or 'cg' / 'dense' or 'sparse')")
@@ -145,11 +162,21 @@ class PhysicsConfig:
             raise ValueError(f"physics background {self.background!r} (expected 'supports' or 'plane')")
         if self.coacd_preprocess not in ("auto", "on", "off"):
             raise ValueError(f"coacd_preprocess {self.coacd_preprocess!r} (expected 'auto', 'on' or 'off')")
-        if not (self.mass > 0 and self.friction >= 0 and 0 <= self.restitution < 1):
-            raise ValueError("physics: need mass > 0, friction ≥ 0 and 0 ≤ restitution < 1")
-        if self.max_hull_vertices > self.drop_test.vertex_budget or self.max_hull_vertices < 4:
-            raise ValueError("physics: need 4 ≤ max_hull_vertices ≤ drop_test.vertex_budget")
-        if self.workers < 0:
-            raise ValueError("physics: workers must be ≥ 0 (0: one per CPU core)")
-        if self.max_parts > self.drop_test.part_buckets[-1]:
-            raise ValueError("physics: max_parts exceeds the drop test's largest part bucket")
+        largest_bucket = max(self.drop_test.part_buckets, default=1)  # empty: the drop test's own check says so
+        check_ranges(self, {
+            "mass": POSITIVE, "friction": NON_NEGATIVE, "restitution": Range(0, 1, high_open=True),
+            "contact_timeconst": POSITIVE,
+            # MuJoCo's solimp: dmin, dmax and midpoint in (0, 1), width > 0, power ≥ 1
+            "solimp": Positions((OPEN_FRACTION, OPEN_FRACTION, POSITIVE, OPEN_FRACTION, AT_LEAST_ONE)),
+            "max_triangles": Range(4), "coacd_threshold": POSITIVE_FRACTION,
+            "max_parts": at_most(largest_bucket, "the largest of drop_test.part_buckets", low=1),
+            "max_hull_vertices": at_most(self.drop_test.vertex_budget, "drop_test.vertex_budget", low=4),
+            "coacd_preprocess_resolution": AT_LEAST_ONE, "coacd_resolution": AT_LEAST_ONE,
+            "coacd_mcts_nodes": AT_LEAST_ONE, "coacd_mcts_iterations": AT_LEAST_ONE, "coacd_seed": NON_NEGATIVE,
+            "min_volume": NON_NEGATIVE, "workers": Range(0, bound="0: one per CPU core"),
+            "support_thickness": POSITIVE, "scene_solver_iterations": AT_LEAST_ONE,
+            "scene_line_search_iterations": AT_LEAST_ONE})
+        for category, mass in self.category_masses:
+            if mass not in POSITIVE:
+                raise ConfigValueError(type(self).__name__, "category_masses", f"{category} {shown(mass)}",
+                                       f"a mass > 0 for {category!r}")

@@ -17,6 +17,7 @@ row; the ``physics`` section holds the scene, background geoms, settle and confi
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import traceback
 from pathlib import Path
@@ -132,11 +133,9 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     it left unfinished are retried alone, and the one that kills its process again is recorded.
     A single object, or a single core, still builds in a child process; only ``workers=1``
     builds in this one (unprotected: for debugging). ``build``: what runs per entry (a top-level
-    function; default ``_build_outcome``).
+    function; default ``_build_outcome``). Workers never outlive this process (``_worker_pool``).
     """
-    import multiprocessing
     import os
-    from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
     args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
@@ -144,9 +143,8 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     if config.workers == 1 or not args:
         return [build(*a) for a in args]
     workers = min(len(args), config.workers or os.cpu_count() or 1)
-    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
     outcomes: list[dict | None] = [None] * len(args)
-    with ProcessPoolExecutor(workers, mp_context=spawn) as pool:
+    with _worker_pool(workers) as pool, _terminated_on_interrupt(pool):
         futures = [pool.submit(build, *a) for a in args]
         for k, future in enumerate(futures):
             try:
@@ -155,12 +153,44 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
                 pass
     for k, outcome in enumerate(outcomes):
         if outcome is None:
-            with ProcessPoolExecutor(1, mp_context=spawn) as alone:
+            with _worker_pool(1) as alone, _terminated_on_interrupt(alone):
                 try:
                     outcomes[k] = alone.submit(build, *args[k]).result()
                 except BrokenProcessPool:
                     outcomes[k] = {"reason": "the collision process died (CoACD crashed on this mesh)"}
     return outcomes
+
+
+def _worker_pool(workers: int):
+    """A pool of ``workers`` spawned processes, each killed by the kernel when this process ends
+    (``native.die_with_parent``: a ``kill -9`` of the run leaves no CoACD running on its own)."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    from phirie_jax.native import die_with_parent
+
+    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
+    return ProcessPoolExecutor(workers, mp_context=spawn, initializer=die_with_parent, initargs=(os.getpid(),))
+
+
+@contextlib.contextmanager
+def _terminated_on_interrupt(pool):
+    """On any exception in the block (Ctrl-C's KeyboardInterrupt above all) the pool's workers
+    are terminated at once: leaving the pool's ``with`` would otherwise wait for every mesh they
+    are decomposing. A signal that ends this process outright (SIGTERM, SIGKILL) takes them with
+    it through ``die_with_parent``."""
+    try:
+        yield
+    except BaseException:
+        terminate = getattr(pool, "terminate_workers", None)  # Python ≥ 3.14
+        if terminate is not None:
+            terminate()
+        else:
+            for process in list((pool._processes or {}).values()):  # what terminate_workers does
+                process.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+        raise
 
 
 # --- step 2: supports, scene.xml and its free settle -----------------------------------

@@ -8,6 +8,7 @@ from phirie_jax.construct.background.config import (
     BackgroundConfig,
     CropConfig,
     FillConfig,
+    PlaneConfig,
     RefineConfig,
     RemovalConfig,
     TargetsConfig,
@@ -20,13 +21,14 @@ def test_paper_defaults():
     assert c.fill.grid == 0.005 and c.targets.inpaint == "telea" and c.refine.dssim_weight == 0.2
 
 
-@pytest.mark.parametrize("make", [
-    lambda: TargetsConfig(inpaint="lama"),
-    lambda: RemovalConfig(mask_votes=0),
-    lambda: FillConfig(init_opacity=1.0),
-    lambda: CropConfig(target_sizes=(8,)),
-    lambda: RefineConfig(iterations=-1),
+@pytest.mark.parametrize("make, message", [
+    (lambda: TargetsConfig(inpaint="lama"), "background inpaint 'lama'"),
+    (lambda: RemovalConfig(mask_votes=0), r"RemovalConfig.mask_votes 0: expected ≥ 1"),
+    (lambda: FillConfig(init_opacity=1.0), r"FillConfig.init_opacity 1: expected in \(0, 1\)"),
+    (lambda: CropConfig(target_sizes=(8,)), r"CropConfig.target_sizes 8: .* ≥ 16 \(one 16-pixel tile\)"),
+    (lambda: RefineConfig(iterations=-1), r"RefineConfig.iterations -1: expected ≥ 0"),
+    (lambda: PlaneConfig(ring_outer=0.005), r"PlaneConfig.ring_outer 0.005: expected > 0.01 \(ring_inner\)"),
 ])
-def test_invalid_values_are_refused(make):
-    with pytest.raises(ValueError, match="background"):
+def test_invalid_values_are_refused(make, message):
+    with pytest.raises(ValueError, match=message):
         make()

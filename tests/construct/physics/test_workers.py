@@ -1,0 +1,77 @@
+"""The collision workers never outlive the run: a ``kill -9`` of the process that started them
+takes them along (``native.die_with_parent``), and Ctrl-C terminates them instead of waiting
+for the meshes they are decomposing.
+
+Each test starts a parent process whose one object's "build" records its process id and sleeps
+far longer than the test, then ends the parent and watches the worker.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.processes import kill_quietly, running, wait_for
+
+ROOT = Path(__file__).resolve().parents[3]
+GONE_WITHIN_S = 5.0     # a dead parent's worker is gone this soon
+START_WITHIN_S = 60.0   # the parent imports the physics stage and spawns a worker (slow on a loaded CPU)
+SLEEP_S = 120.0         # the build's sleep: a worker still there after GONE_WITHIN_S was orphaned
+
+PARENT = """
+import sys
+from pathlib import Path
+from phirie_jax.construct.physics.config import PhysicsConfig
+from phirie_jax.construct.physics.stage import build_objects
+from tests.construct.physics.test_workers import sleeping_build
+build_objects([{"id": 1}], {}, Path(sys.argv[1]), PhysicsConfig(workers=0), build=sleeping_build)
+"""
+
+
+def sleeping_build(entry, category, out_dir, config):
+    """(In a worker.) Record this process's id, then sleep as a long CoACD run would."""
+    (Path(out_dir) / "worker.pid").write_text(str(os.getpid()))
+    time.sleep(SLEEP_S)
+    return {"update": {}}
+
+
+def started_worker(tmp_path: Path) -> tuple[subprocess.Popen, int]:
+    """A parent process building one object, and its worker's process id once it is at work."""
+    parent = subprocess.Popen([sys.executable, "-c", PARENT, str(tmp_path)], cwd=ROOT)
+    pid_file = tmp_path / "worker.pid"
+    if not wait_for(lambda: pid_file.is_file() and pid_file.read_text(), START_WITHIN_S):
+        parent.kill()
+        pytest.fail("the worker did not start")
+    return parent, int(pid_file.read_text())
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG) is Linux's")
+def test_a_killed_parent_takes_its_workers_along(tmp_path):
+    parent, worker = started_worker(tmp_path)
+    try:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        assert wait_for(lambda: not running(worker), GONE_WITHIN_S), "the worker outlived its killed parent"
+    finally:
+        kill_quietly(worker)
+
+
+def test_an_interrupted_parent_terminates_its_workers_at_once(tmp_path):
+    parent, worker = started_worker(tmp_path)
+    try:
+        os.kill(parent.pid, signal.SIGINT)
+        try:
+            parent.wait(timeout=GONE_WITHIN_S)
+        except subprocess.TimeoutExpired:
+            parent.kill()
+            pytest.fail("the interrupted parent waited for its worker's build")
+        assert parent.returncode != 0
+        assert wait_for(lambda: not running(worker), GONE_WITHIN_S), "the worker outlived the interrupted run"
+    finally:
+        kill_quietly(worker)
