@@ -28,7 +28,13 @@ SSIM on the *hidden* pixels alone: where the truth shows tabletop that no captur
 (weight ≥ ``HIDDEN_WEIGHT``) — the part only a completion can get right. (The synthetic table's
 underside carries the same wood pattern as its top, 4 cm below, so "removal only" sees a shifted
 copy of the right texture through the hole: a stronger baseline than a real capture gives.) Ghosts:
-object Gaussians left in background.ply; collateral: background Gaussians removed.
+object Gaussians left in background.ply (``gt/labels.npy`` > 0), per object with their opacity;
+collateral: background Gaussians removed.
+
+Uncovered region, worst view (issue 15's metric): from every capture camera, the pixels where the
+capture's own render differs visibly from the true background's (mean absolute RGB difference
+> ``VISIBLE_CHANGE`` on [0, 1]); PSNR of each result against the truth over those pixels, for the
+worst view and the mean over views (``uncovered``).
 With ``--fitted`` every seed is evaluated a second time on the same scene with its Gaussians fitted
 to the images (``phirie synth --fitted``, under ``--scene-root/bg<seed>_fitted``): G0 is then the
 fitted set, labelled by the nearest ideal Gaussian (``gt/labels.npy``); the truth stays the ideal
@@ -53,18 +59,26 @@ from phirie_jax.synthetic.truth import REGION_WEIGHT, background_truth
 
 DEV_SEEDS = (0,)
 HELD_OUT = 12
+VISIBLE_CHANGE = 0.08  # a capture-camera pixel is uncovered where capture and truth differ by this much
 HIDDEN_WEIGHT = 0.5  # a pixel shows the hidden tabletop where its Gaussians carry this much weight in the truth
 # variant → (inpainting method, refinement iterations; None: the default)
 VARIANTS = {"telea": ("telea", None), "ns": ("ns", None), "init": ("telea", 0)}
 
 
-def _scene(root: Path, seed: int, fit_config=None) -> Path:
-    """The seed's ``default`` scene; with ``fit_config`` (a ``FitConfig``) its fitted variant."""
+def _scene(root: Path, seed: int, fit_config=None, candidates: bool = False) -> Path:
+    """The seed's ``default`` scene; with ``fit_config`` (a ``FitConfig``) its fitted variant; with
+    ``candidates``, external candidates written beside it as ``objects_eval`` writes them."""
     from phirie_jax.synthetic.fitted import ensure_synthesized
 
     fitted = fit_config is not None
     kwargs = {"config": fit_config} if fitted else {}
-    return ensure_synthesized(root / (f"bg{seed}_fitted" if fitted else f"bg{seed}"), "default", seed, fitted, **kwargs)
+    name = f"bg{seed}" + ("_fitted" if fitted else "") + ("_candidates" if candidates else "")
+    scene = ensure_synthesized(root / name, "default", seed, fitted, **kwargs)
+    if candidates and not (scene / "candidates").is_dir():
+        from experiments.objects_eval import synthetic_candidates
+
+        synthetic_candidates(scene, seed)
+    return scene
 
 
 def _objects(scene_dir: Path, out: Path) -> dict:
@@ -147,15 +161,16 @@ def _hole(full_out, kept_out, disk_out, config) -> np.ndarray:
     return region & on_disks & ((kept_alpha < config.explained_alpha) | see_through)
 
 
-def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None) -> dict:
+def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None, candidates: bool = False) -> dict:
     from phirie_jax.construct.background.config import BackgroundConfig
     from phirie_jax.construct.background.stage import run_background
     from phirie_jax.construct.background.targets import inpaint
     from phirie_jax.io.ply import read_gaussian_ply
     from phirie_jax.synthetic.scene import PRESETS
 
-    scene_dir = _scene(scene_root, seed, fit_config)
+    scene_dir = _scene(scene_root, seed, fit_config, candidates)
     work = work / "fitted" if fit_config is not None else work
+    work = work / "candidates" if candidates else work
     base = work / f"bg{seed}" / "objects"
     t0 = time.perf_counter()
     manifest = _objects(scene_dir, base)
@@ -191,6 +206,7 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None) -> d
     d, _ = cKDTree(kept.means).query(capture.means)
     left = d < 1e-6
     results["ghosts"] = int(np.sum(left & (labels > 0)))
+    results["ghosts_per_object"] = ghosts_per_object(left, labels, capture.opacity_logits)
     results["ghost_opacity_sum"] = float(np.sum(1 / (1 + np.exp(-capture.opacity_logits[left & (labels > 0)]))))
     results["collateral"] = int(np.sum(~left & (labels == 0)))
     results["object_gaussians"] = int(np.sum(labels > 0))
@@ -226,9 +242,63 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None) -> d
             rows.setdefault(name, []).append({"view": k, "region_px": int(region.sum()), "hidden_px": int(hidden.sum()),
                                               **_metrics(img, gt, region, hidden)})
     results["views"] = rows
+    capture_cams = read_scene_cameras(scene_dir)
+    results["uncovered"] = uncovered_region(
+        capture, truth, {"removal only": kept, **{f"fill, refined ({m})": fills[m] for m in ("telea", "ns")},
+                         "fill, initialized only (telea targets)": fills["init"]}, capture_cams, bg)
     results["summary"] = {name: _mean(vs) for name, vs in rows.items()}
     results["objects_stage_s"] = round(objects_s, 2)
     return results
+
+
+def ghosts_per_object(left: np.ndarray, labels: np.ndarray, opacity_logits: np.ndarray) -> list[dict]:
+    """Per true object: its capture Gaussians still in background.ply and their opacities."""
+    out = []
+    for k in sorted(int(v) for v in np.unique(labels) if v > 0):
+        ghost = left & (labels == k)
+        alpha = 1 / (1 + np.exp(-opacity_logits[ghost].astype(np.float64)))
+        out.append({"id": k, "ghosts": int(ghost.sum()),
+                    "opacity_max": round(float(alpha.max()), 4) if ghost.any() else None,
+                    "opacity_sum": round(float(alpha.sum()), 4)})
+    return out
+
+
+def uncovered_region(capture, truth, results: dict, cams, background) -> dict:
+    """Issue 15's uncovered-region PSNR (module docstring) of each result in ``results`` (name →
+    Gaussian set): per view, then the worst view and the mean over views."""
+    from phirie_jax.render import render
+
+    capture_g, truth_g = capture.to_kernel(), truth.to_kernel()
+    result_g = {name: data.to_kernel() for name, data in results.items()}
+    views: dict[str, list[dict]] = {name: [] for name in results}
+    for k, cam in enumerate(cams):
+        gt = np.asarray(render(truth_g, cam, background=background).rgb)
+        seen = np.asarray(render(capture_g, cam, background=background).rgb)
+        region = np.abs(seen - gt).mean(-1) > VISIBLE_CHANGE
+        if region.sum() < 20:
+            continue
+        for name, g in result_g.items():
+            img = np.asarray(render(g, cam, background=background).rgb)
+            mse = float(np.mean((img[region] - gt[region]) ** 2))
+            views[name].append({"view": k, "region_px": int(region.sum()),
+                                "psnr": round(-10 * np.log10(max(mse, 1e-10)), 3)})
+    return {name: {"views": len(v), "worst_psnr": float(min(x["psnr"] for x in v)) if v else None,
+                   "worst_view": min(v, key=lambda x: x["psnr"])["view"] if v else None,
+                   "mean_psnr": round(float(np.mean([x["psnr"] for x in v])), 3) if v else None, "per_view": v}
+            for name, v in views.items()}
+
+
+def _uncovered_summary(per_seed: list[dict]) -> dict:
+    """Per result: the worst view of every seed and over all seeds, and the mean over all views."""
+    out = {}
+    for name in per_seed[0]["uncovered"]:
+        rows = [r["uncovered"][name] for r in per_seed]
+        views = [v["psnr"] for row in rows for v in row["per_view"]]
+        out[name] = {"worst_per_seed": [row["worst_psnr"] for row in rows],
+                     "mean_per_seed": [row["mean_psnr"] for row in rows],
+                     "worst": min(views) if views else None,
+                     "mean": round(float(np.mean(views)), 3) if views else None, "views": len(views)}
+    return out
 
 
 def _summary(per_seed: list[dict]) -> list[dict]:
@@ -258,21 +328,25 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/background_eval.json"))
     parser.add_argument("--fitted", action="store_true", help="also every scene with fitted Gaussians")
     parser.add_argument("--fit-steps", type=int, default=None, help="with --fitted: Adam steps of the fit")
+    parser.add_argument("--candidates", action="store_true",
+                        help="external candidates beside each scene (objects_eval's gen_a / gen_b)")
     args = parser.parse_args()
     if set(args.seeds) & set(DEV_SEEDS):
         print(f"note: seeds {sorted(set(args.seeds) & set(DEV_SEEDS))} were used while developing")
     import jax
 
-    per_seed = [evaluate_seed(s, args.scene_root, args.work) for s in args.seeds]
+    per_seed = [evaluate_seed(s, args.scene_root, args.work, candidates=args.candidates) for s in args.seeds]
     summary = _summary(per_seed)
     out = {
         "what": "background branch vs the true background (hidden tabletop included), held-out views",
-        "preset": "default", "seeds": args.seeds, "dev_seeds_excluded": list(DEV_SEEDS),
+        "preset": "default", "seeds": args.seeds, "external_candidates": args.candidates, "dev_seeds_excluded": list(DEV_SEEDS),
         "held_out_views_per_seed": HELD_OUT, "region_weight": REGION_WEIGHT,
         "machine": {"platform": platform.platform(), "jax_backend": jax.default_backend(), "cpus": os.cpu_count(),
                     "load_average_at_end": os.getloadavg()},
         "summary": summary,
+        "uncovered": _uncovered_summary(per_seed), "visible_change": VISIBLE_CHANGE,
         "ghosts": [r["ghosts"] for r in per_seed], "collateral": [r["collateral"] for r in per_seed],
+        "ghosts_per_object": [r["ghosts_per_object"] for r in per_seed],
         "object_gaussians": [r["object_gaussians"] for r in per_seed],
         "background_wall_s": {name: [r[f"run_{name}"]["wall_s"] for r in per_seed] for name in VARIANTS},
         "per_seed": per_seed,
@@ -281,9 +355,9 @@ def main() -> None:
         from phirie_jax.synthetic.fitted import fit_config_for
 
         fit_config = fit_config_for("default", args.fit_steps)
-        fitted = [evaluate_seed(s, args.scene_root, args.work, fit_config) for s in args.seeds]
-        out["fitted"] = {"summary": _summary(fitted), "per_seed": fitted,
-                         "fits": [json.loads((_scene(args.scene_root, s, fit_config) / "gt" / "fit.json").read_text())
+        fitted = [evaluate_seed(s, args.scene_root, args.work, fit_config, args.candidates) for s in args.seeds]
+        out["fitted"] = {"summary": _summary(fitted), "uncovered": _uncovered_summary(fitted), "per_seed": fitted,
+                         "fits": [json.loads((_scene(args.scene_root, s, fit_config, args.candidates) / "gt" / "fit.json").read_text())
                                   for s in args.seeds]}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1, default=float) + "\n")
@@ -291,6 +365,11 @@ def main() -> None:
         print(f"{row['row']:42s} PSNR in {row['psnr_in']:6.2f}  SSIM in {row['ssim_in']:.3f}  "
               f"PSNR out {row['psnr_out']:6.2f}  hidden PSNR {row.get('psnr_hidden', float('nan')):6.2f} "
               f"SSIM {row.get('ssim_hidden', float('nan')):.3f}  ({row['views']} views)")
+    for part, uncovered in (("", out["uncovered"]), (" (fitted)", out.get("fitted", {}).get("uncovered", {}))):
+        for name, u in uncovered.items():
+            print(f"uncovered region{part}, {name:40s} worst view {u['worst']} dB (per seed "
+                  f"{[float(w) for w in u['worst_per_seed']]}), "
+                  f"mean {u['mean']} dB over {u['views']} capture views")
 
 
 if __name__ == "__main__":
