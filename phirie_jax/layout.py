@@ -9,6 +9,8 @@ relative to the output folder).
     OUT/objects/<id>/collision/part_NN.obj   convex parts, canonical frame
     OUT/objects/<id>/object.urdf
     OUT/scene.xml                  MJCF of the whole scene
+    OUT/scene.usda                 the same scene in OpenUSD (when pxr is importable)
+    OUT/report.html                what the conversion made, self-contained (images inlined)
     OUT/background.ply             G_bg = (G0 \\ ∪R_i) ∪ G_fill
     OUT/background/targets/        the inpainting targets, when written
 """
@@ -22,6 +24,8 @@ CAMERAS = "transforms.json"
 BACKGROUND_TARGETS = "background/targets"
 OBSERVED_SURFACE = "observe/surface.ply"
 SCENE_MJCF = "scene.xml"
+SCENE_USD = "scene.usda"
+REPORT = "report.html"
 BACKGROUND = "background.ply"
 OBJECTS = "objects"
 OBJECT_MESH = "mesh.obj"

@@ -6,13 +6,14 @@ to ``objects/<id>/collision/part_NN.obj`` (canonical frame), set the physics pri
 uniform-density inertia (its ``body.ObjectBody``), write ``objects/<id>/object.urdf``. A mesh
 that cannot be a rigid body (empty, non-manifold, zero volume, MuJoCo refuses it) makes that
 object "failed" with the reason; the others go on. Then the supports are fitted, ``scene.xml``
-is written and loaded back, all objects are drop-tested in one batch (``run_droptest``, which
-also re-runs on an exported folder alone), and a 2 s free settle of the whole scene is recorded.
+(and ``scene.usda`` from the same records, when ``pxr`` is importable) is written and loaded
+back, all objects are drop-tested in one batch (``run_droptest``, which also re-runs on an
+exported folder alone), and a 2 s free settle of the whole scene is recorded.
 
 Manifest: each object gets ``collision``, ``mass``, ``friction``, ``physics`` (priors, mass
 properties, collision report, URDF path, body name), ``drop_test`` and its ``checks.settling``
-row; the ``physics`` section holds the scene, background geoms, settle and config; timings
-``physics`` and ``physics.<step>``.
+row; the ``physics`` section holds the scene, its USD record, background geoms, settle and
+config; timings ``physics`` and ``physics.<step>``.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from phirie_jax.construct.physics.parts import read_part, write_parts
 from phirie_jax.construct.physics.priors import Priors, priors
 from phirie_jax.construct.physics.supports import PlacedBody, fit_background
 from phirie_jax.construct.physics.urdf import write_urdf
+from phirie_jax.construct.physics.usd import write_scene_usd
 from phirie_jax.errors import SceneInputError
 from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
@@ -204,10 +206,20 @@ def export_scene(objects: list[dict], up: np.ndarray, surface, out_dir: Path, co
     placed = [_placed(body, e) for body, e in zip(bodies, exported)]
     background = fit_background(placed, up, surface, config.support_thickness, config.background)
     write_text(out_dir / layout.SCENE_MJCF, scene_mjcf(bodies, background, up, config))
+    usd = write_scene_usd(out_dir, bodies, [_visual_mesh(e, out_dir) for e in exported], background, up,
+                          priors(None, config))
     settle = settle_scene(out_dir / layout.SCENE_MJCF, SETTLE_SECONDS)
-    return {"scene": layout.SCENE_MJCF, "up": up, "background": [g.record() for g in background],
+    return {"scene": layout.SCENE_MJCF, "usd": usd, "up": up, "background": [g.record() for g in background],
             "surface": None if surface is None else surface.metadata.get("phirie_path"),
             "scene_settle": {"seconds": SETTLE_SECONDS, "displacement_m": settle}, "config": to_dict(config)}
+
+
+def _visual_mesh(entry: dict, out_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The completed mesh of an exported object (canonical frame), for ``scene.usda``'s visual."""
+    try:
+        return _load_mesh(layout.resolve(out_dir, entry["mesh"])) if entry.get("mesh") else None
+    except MeshError:
+        return None
 
 
 def _placed(body: ObjectBody, entry: dict) -> PlacedBody:
