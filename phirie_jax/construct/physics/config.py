@@ -40,7 +40,8 @@ class DropTestConfig:
         free_time: free motion after settling (paper: 2 s).
         max_drift: stable if the centre of mass drifts less than this (paper: 3 cm).
         min_final_height: ... and its final height above the plane is at least this (paper: −5 cm).
-        backend: "mjx" (one vmapped program per batch), "mujoco" (the C library, the reference) or
+        backend: "mjx" (one vmapped program per batch), "warp" (MuJoCo Warp: one world per candidate,
+            CUDA graphs; ``pip install phirie_jax[warp]``), "mujoco" (the C library, the reference) or
             "auto" (MJX with an accelerator, else C: faster on a CPU; physics_notes.md "Backend").
         solver / jacobian: MuJoCo's solver ("newton" or "cg") and mass-matrix layout ("dense" or
             "sparse"): Newton/dense is fastest for the same verdicts (physics_notes.md "Solver").
@@ -75,8 +76,8 @@ class DropTestConfig:
     unroll: int = 1
 
     def __post_init__(self):
-        if self.backend not in ("auto", "mjx", "mujoco"):
-            raise ValueError(f"drop test backend {self.backend!r} (expected 'auto', 'mjx' or 'mujoco')")
+        if self.backend not in ("auto", "mjx", "warp", "mujoco"):
+            raise ValueError(f"drop test backend {self.backend!r} (expected 'auto', 'mjx', 'warp' or 'mujoco')")
         check_ranges(self, {
             "timestep": POSITIVE, "settle_time": NON_NEGATIVE, "free_time": NON_NEGATIVE, "max_drift": POSITIVE,
             "min_final_height": Range(), "solver_iterations": AT_LEAST_ONE, "line_search_iterations": AT_LEAST_ONE,

@@ -9,7 +9,8 @@ Both backends simulate the same compiled MuJoCo models (``build_model``): a plan
 body added by ``body.add_body`` (the builder of ``scene.xml``'s bodies: explicit inertial, the
 priors' contact parameters), its convex parts inline and padded to the part bucket with ghost
 parts. "mujoco" steps each model with the C library, one after another (the reference);
-"mjx" runs a whole bucket as one vmapped program (``mjx_batch``).
+"mjx" runs a whole bucket as one vmapped program (``mjx_batch``); "warp" runs it as one MuJoCo
+Warp batch, a world per candidate (``warp_batch``).
 
 The construction stage's settling check calls ``drop_test_meshes`` (one convex hull per
 candidate, every candidate in one batch) and ``settling_check`` (a check-table row).
@@ -194,7 +195,12 @@ def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfi
         except (ValueError, MeshError) as err:
             results[k] = DropResult(None, None, None, None, None, backend, f"{type(err).__name__}: {err}")
     for bucket, members in groups.items():
-        if backend == "mjx":
+        if backend == "warp":
+            from phirie_jax.construct.physics import warp_batch
+
+            run = warp_batch.run([models[k] for k in members], np.stack([qpos0[k] for k in members]), config)
+            settled, final = run.settled, run.final
+        elif backend == "mjx":
             from phirie_jax.construct.physics import mjx_batch
 
             template_model, template = bucket_template(bucket, config)

@@ -1,0 +1,205 @@
+"""Every drop test of a batch as one MuJoCo Warp program: one simulated world per candidate.
+
+MuJoCo Warp (``mujoco_warp``, NVIDIA Warp kernels) steps ``nworld`` copies of one model, and a
+model field whose spec starts with ``*`` may differ per world (``put_model(batch_sizes=...)``).
+Among those is ``geom_dataid``, the mesh a geom collides with. So the batch is one *bank* model:
+the plane and one free body of ``bucket`` mesh geoms, with every candidate's convex parts (ghost
+parts included, as ``droptest.build_model`` pads them) as mesh assets. World w's geoms point at
+candidate w's meshes, and its inertia, geom frames, sizes and contact parameters are read from
+candidate w's own compiled MuJoCo C model (the reference runs exactly those models). MuJoCo
+compiles a mesh into its own frame the same way in both models, so the geom frames carry over.
+
+The protocol's two phases are replayed as CUDA graphs on a GPU (one capture of
+``GRAPH_STEPS`` steps each, launched until the phase is done); on a CPU the kernels are launched
+one by one.
+
+``early_exit`` is a masked early exit through MuJoCo's own sleeping: in the free phase (never while
+settling, where velocities are zeroed on purpose) a body whose velocities stay below
+``SLEEP_TOLERANCE`` for MuJoCo's minimum awake time falls asleep, its world's kernels skip it and
+its pose is frozen; the phase ends once every world sleeps (checked every ``GRAPH_STEPS``).
+
+Needs ``warp-lang`` and ``mujoco-warp`` (``pip install phirie_jax[warp]``); the module imports
+them lazily so the package stays importable without them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import mujoco
+import numpy as np
+
+from phirie_jax.construct.physics.config import DropTestConfig
+
+# Per-world model fields: what differs between candidates of one bucket (``mjx_batch.BATCHED``
+# without the fields MuJoCo Warp does not have).
+PER_WORLD = ("body_ipos", "body_iquat", "body_mass", "body_subtreemass", "body_inertia", "body_invweight0",
+             "dof_invweight0", "geom_pos", "geom_quat", "geom_size", "geom_rbound", "geom_aabb",
+             "geom_friction", "geom_solref", "geom_solimp")
+GRAPH_STEPS = 16        # protocol steps per captured graph (and between early-exit checks)
+SLEEP_TOLERANCE = 1e-4  # early exit: a body sleeps once its velocities stay below this (MuJoCo's default)
+CONTACTS_PER_PART = 8  # contact slots per mesh geom and world (a plane–convex pair makes at most 4)
+MISSING = "MuJoCo Warp is not installed: pip install 'phirie_jax[warp]' (warp-lang, mujoco-warp)"
+
+
+def available() -> tuple[bool, str]:
+    """(True, version) when warp and mujoco_warp import, else (False, the line saying what to install)."""
+    try:
+        import mujoco_warp  # noqa: F401
+        import warp
+    except ImportError:
+        return False, MISSING
+    return True, warp.__version__
+
+
+@dataclasses.dataclass(frozen=True)
+class WarpBatchResult:
+    settled: np.ndarray   # (N, 7) free-joint qpos after the settling phase
+    final: np.ndarray     # (N, 7) ... at the end
+    free_steps_run: int   # free-phase steps actually simulated (fewer with early exit)
+    device: str
+
+
+def bank_model(models: list[mujoco.MjModel], config: DropTestConfig, sleep: bool = False
+               ) -> tuple[mujoco.MjModel, np.ndarray]:
+    """The bank model holding every candidate's parts, and (N, P) the mesh id of candidate n's
+    part p in it. models: each candidate's drop-test model (``droptest.build_model``, one bucket);
+    sleep: compiled with sleeping allowed (the early exit)."""
+    from phirie_jax.construct.physics.droptest import PLANE_HALF_SIZE, _set_options
+
+    parts = models[0].ngeom - 1
+    spec = mujoco.MjSpec()
+    spec.modelname = "phirie_droptest_bank"
+    _set_options(spec.option, config)
+    if sleep:
+        spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
+        spec.option.sleep_tolerance = SLEEP_TOLERANCE
+    spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
+                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
+    ids = np.zeros((len(models), parts), np.int64)
+    for n, m in enumerate(models):
+        if m.ngeom - 1 != parts:
+            raise ValueError(f"candidate {n} has {m.ngeom - 1} parts, the batch {parts} (one bucket per batch)")
+        for p in range(parts):
+            mesh = int(m.geom_dataid[1 + p])
+            start, count = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
+            # the compiled mesh, in its own frame, put back where the candidate's geom holds it
+            rot = np.zeros(9)
+            mujoco.mju_quat2Mat(rot, m.geom_quat[1 + p])
+            verts = m.mesh_vert[start:start + count] @ rot.reshape(3, 3).T + m.geom_pos[1 + p]
+            spec.add_mesh(name=f"c{n}_p{p}").uservert = verts.ravel()
+            ids[n, p] = n * parts + p
+    ref = models[0]
+    body = spec.worldbody.add_body(name="body")
+    body.add_freejoint(name="body")
+    body.explicitinertial = True
+    body.mass, body.ipos = float(ref.body_mass[1]), ref.body_ipos[1]
+    body.iquat, body.inertia = ref.body_iquat[1], ref.body_inertia[1]
+    for p in range(parts):
+        body.add_geom(name=f"part_{p:02d}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"c0_p{p}",
+                      friction=ref.geom_friction[1 + p], solref=ref.geom_solref[1 + p],
+                      solimp=ref.geom_solimp[1 + p])
+    return spec.compile(), ids
+
+
+def _per_world(bank: mujoco.MjModel, models: list[mujoco.MjModel], mesh_ids: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-world values of ``PER_WORLD`` (from each candidate's model) and ``geom_dataid``."""
+    values = {name: np.stack([getattr(m, name) for m in models]) for name in PER_WORLD}
+    dataid = np.repeat(bank.geom_dataid[None], len(models), axis=0)
+    dataid[:, 1:] = mesh_ids
+    values["geom_dataid"] = dataid
+    return values
+
+
+def _put(bank: mujoco.MjModel, values: dict[str, np.ndarray], nworld: int):
+    """The bank on the current Warp device with its per-world fields set."""
+    import mujoco_warp as mjw
+
+    with warnings.catch_warnings():
+        # the plane has no friction of its own: MuJoCo takes the larger friction of a pair
+        warnings.filterwarnings("ignore", message=r"geom 0: friction\[0\]")
+        model = mjw.put_model(bank, batch_sizes={name: nworld for name in values})
+    for name, array in values.items():
+        field = getattr(model, name)
+        like = field.numpy()
+        field.assign(np.ascontiguousarray(array.reshape(like.shape), dtype=like.dtype))
+    return model
+
+
+def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
+        device: str | None = None) -> WarpBatchResult:
+    """Drop-test ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7) in MuJoCo Warp."""
+    ok, why = available()
+    if not ok:
+        raise RuntimeError(why)
+    import mujoco_warp as mjw
+    import warp as wp
+
+    device = device or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    n = len(models)
+    bank, mesh_ids = bank_model(models, config, sleep=early_exit)
+    with wp.ScopedDevice(device):
+        model = _put(bank, _per_world(bank, models, mesh_ids), n)
+        # the protocol runs its own iteration counts on purpose: no overflow notices
+        model.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
+        sleep_flag = int(mjw.EnableBit.SLEEP)
+        model.opt.enableflags &= ~sleep_flag          # settling zeroes velocities: nothing may sleep
+        parts = bank.ngeom - 1
+        data = mjw.make_data(bank, nworld=n, nconmax=CONTACTS_PER_PART * parts,
+                             njmax=CONTACTS_PER_PART * parts * 4, naconmax=n * CONTACTS_PER_PART * parts)
+        data.qpos.assign(np.asarray(qpos0, np.float32).reshape(n, -1))
+        cuda = str(device).startswith("cuda")
+        settle = _graph(wp, lambda: _settle_step(mjw, model, data)) if cuda else None
+        _repeat(wp, settle, config.settle_steps, lambda: _settle_step(mjw, model, data))
+        settled = data.qpos.numpy().astype(np.float64)
+        if early_exit:
+            model.opt.enableflags |= sleep_flag
+        free = _graph(wp, lambda: mjw.step(model, data)) if cuda else None
+        steps = _free_phase(wp, free, data, config.free_steps, early_exit, lambda: mjw.step(model, data))
+        return WarpBatchResult(settled, data.qpos.numpy().astype(np.float64), steps, device)
+
+
+def _settle_step(mjw, model, data) -> None:
+    mjw.step(model, data)
+    data.qvel.zero_()
+
+
+def _graph(wp, step):
+    """A CUDA graph of ``GRAPH_STEPS`` calls of ``step``. Capturing launches nothing, so the
+    first step of a phase always runs before its capture: Warp compiles and loads kernels outside."""
+    step()
+    with wp.ScopedCapture() as capture:
+        for _ in range(GRAPH_STEPS):
+            step()
+    return capture.graph
+
+
+def _repeat(wp, graph, steps: int, step) -> None:
+    """``steps`` protocol steps: whole graphs, then the remainder one by one (``_graph`` ran one)."""
+    done = 0
+    if graph is not None:
+        done = 1 + (steps - 1) // GRAPH_STEPS * GRAPH_STEPS
+        for _ in range((steps - 1) // GRAPH_STEPS):
+            wp.capture_launch(graph)
+    for _ in range(done, steps):
+        step()
+
+
+def _free_phase(wp, graph, data, steps: int, early_exit: bool, step) -> int:
+    """The free phase; with ``early_exit`` it ends once every world sleeps. Returns the steps run."""
+    if not early_exit:
+        _repeat(wp, graph, steps, step)
+        return steps
+    done = 1 if graph is not None else 0
+    while done < steps:
+        chunk = min(GRAPH_STEPS, steps - done)
+        if graph is not None and chunk == GRAPH_STEPS:
+            wp.capture_launch(graph)
+        else:
+            for _ in range(chunk):
+                step()
+        done += chunk
+        if not data.tree_awake.numpy().any():
+            break
+    return done
