@@ -7,16 +7,17 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 SYSPKG := libusb-1.0-0 libgomp1
+TESTPKG := chromium
 
-.PHONY: demo test test-all bench setup system-packages clean
+.PHONY: demo test test-all bench setup system-packages test-packages clean
 
 demo: setup
 	$(PY) -m phirie_jax.cli demo --out out/demo
 
-test: setup
+test: setup test-packages
 	$(PY) -m pytest -n auto -q
 
-test-all: setup
+test-all: setup test-packages
 	$(PY) -m pytest -n auto -q -m ''
 
 setup: system-packages $(STAMP)
@@ -32,6 +33,21 @@ system-packages:
 	  else \
 	    echo "missing system packages:$$missing"; \
 	    echo "run: sudo apt-get update && sudo apt-get install -y$$missing"; exit 1; \
+	  fi; \
+	fi
+
+# The viewer's browser test drives Debian's Chromium (headless). As root (CI) install it;
+# otherwise say how (that test is skipped without it).
+test-packages:
+	@missing=""; for p in $(TESTPKG); do \
+	  dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing test packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	  else \
+	    echo "missing test packages:$$missing (the browser test is skipped)"; \
+	    echo "run: sudo apt-get update && sudo apt-get install -y$$missing"; \
 	  fi; \
 	fi
 

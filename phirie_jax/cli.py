@@ -23,6 +23,7 @@ from phirie_jax.frame.config import FrameConfig
 from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.pipeline import ConvertConfig
+from phirie_jax.view.config import ViewConfig
 from phirie_jax.ranges import (
     AT_LEAST_ONE,
     FRACTION,
@@ -406,8 +407,36 @@ def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large
     run_demo(out, preset=preset, seed=seed)
 
 
+def view(out_dir: Annotated[Path, tyro.conf.Positional],
+         settings: Annotated[ViewConfig, tyro.conf.OmitArgPrefixes] = ViewConfig()) -> None:
+    """Serve a converted scene to the browser (viser; needs the viewer extra): its Gaussians, the
+    capture's cameras and a live MuJoCo simulation. Click an object to shoot it, drag it to push
+    it; play / pause / reset, collision parts, completed meshes, instance colours, the source
+    capture and each object's record are in the panel. Runs until Ctrl-C; no GPU needed.
+
+    Args:
+        out_dir: a `phirie convert` output folder.
+        settings: the viewer's settings (--port, --host, --no-playing, ...).
+    """
+    import time
+
+    from phirie_jax.view.server import Viewer
+
+    try:  # the options are the config's fields (no prefix): checked here, named as typed
+        settings = dataclasses.replace(settings)
+    except ConfigValueError as err:
+        raise OptionError("--" + err.field.replace("_", "-"), f"expected {err.expected}", err.shown) from None
+    viewer = Viewer(out_dir, settings)
+    print(f"phirie view: {viewer.url} (Ctrl-C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    finally:
+        viewer.close()
+
+
 COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
-            "convert": convert, "droptest": droptest, "simulate": simulate, "demo": demo}
+            "convert": convert, "droptest": droptest, "simulate": simulate, "demo": demo, "view": view}
 
 
 def _options_checked(command):

@@ -24,8 +24,8 @@ LAYERS = (
     ("phirie_jax.construct.physics", 7),
     ("phirie_jax.construct.background", 8),
     ("phirie_jax.interact", 9),
-    ("phirie_jax.pipeline", 10),
-    ("phirie_jax.info", 11), ("phirie_jax.demo", 11), ("phirie_jax.cli", 11),
+    ("phirie_jax.pipeline", 10), ("phirie_jax.report", 10),
+    ("phirie_jax.info", 11), ("phirie_jax.demo", 11), ("phirie_jax.cli", 11), ("phirie_jax.view", 11),
 )
 PACKAGE_ROOTS = ("phirie_jax", "kernels")
 CONTAINERS = ("phirie_jax", "phirie_jax.construct", "phirie_jax.frame")  # packages that only group others: they import nothing

@@ -1,0 +1,64 @@
+"""What the viewer's panel says about each object, as Markdown, from its ``manifest.json`` entry."""
+
+from __future__ import annotations
+
+import math
+
+
+def _number(value, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return str(value)
+    return f"{value:.{digits}g}"
+
+
+def candidate_name(entry: dict) -> str:
+    """The chosen candidate's name (the manifest holds a name, or a record with one)."""
+    candidate = entry.get("candidate")
+    return str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—")
+
+
+def chosen_scores(entry: dict) -> dict:
+    """The scores of the chosen candidate among those tried (empty when not recorded)."""
+    name = candidate_name(entry)
+    return next((c.get("scores") or {} for c in entry.get("candidates") or [] if c.get("name") == name), {})
+
+
+def drop_verdict(entry: dict) -> str:
+    """The drop test in words: stable / unstable with the drift, or why it was not run."""
+    drop = entry.get("drop_test") or {}
+    if not drop:
+        return "not run"
+    if drop.get("error"):
+        return f"not measured ({drop['error']})"
+    drift = drop.get("drift_m")
+    verdict = "stable" if drop.get("stable") else "unstable"
+    return verdict + (f", drift {100 * drift:.1f} cm" if drift is not None else "")
+
+
+def object_markdown(entry: dict) -> str:
+    """The panel of one object: status, candidate and scores, checks, drop test, physics."""
+    lines = [f"**{entry.get('status', '?')}** · candidate `{candidate_name(entry)}`"]
+    if entry.get("status") != "accepted" and entry.get("reason"):
+        lines.append(f"reason: {entry['reason']}")
+    scores = {k: v for k, v in chosen_scores(entry).items() if isinstance(v, (int, float))}
+    if scores:
+        lines.append("scores: " + ", ".join(f"{k} {_number(v)}" for k, v in scores.items()))
+    checks = entry.get("checks") or {}
+    if checks:
+        lines += ["", "| check | value | threshold | |", "|---|---|---|---|"]
+        for name, check in checks.items():
+            passed = check.get("passed")
+            mark = "✔" if passed else "✘" if passed is False else "·"
+            lines.append(f"| {name} | {_number(check.get('value'))} | {_number(check.get('threshold'))} | {mark} |")
+        lines.append("")
+    lines.append(f"drop test: {drop_verdict(entry)}")
+    physics = entry.get("physics") or {}
+    mass = physics.get("mass_properties") or {}
+    if entry.get("mass") is not None:
+        lines.append(f"mass {_number(entry['mass'])} kg · friction {_number(entry.get('friction'))}"
+                     + (f" · {len(entry.get('collision') or [])} convex parts" if entry.get("collision") else ""))
+    if mass.get("com") is not None:
+        lines.append("centre of mass (body frame, m): " + ", ".join(_number(v) for v in mass["com"]))
+    return "\n".join(lines)

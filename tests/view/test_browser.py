@@ -1,0 +1,124 @@
+"""``phirie view`` in a real browser: the server on loopback, Debian's Chromium headless (software
+WebGL) driven by Playwright. The page draws the scene (non-blank; the objects' pixels change when
+"Background only" hides them), and a click on an object shoots it: the server sees it move.
+Skipped, with the reason, where Chromium, Playwright or viser is missing (CI installs them)."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from phirie_jax.view.scene import CameraView, screen_position
+from tests.fixtures.box_scene import converted_folder
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+if not Path(CHROMIUM).is_file():
+    pytest.skip("Chromium is not installed (Debian: apt-get install chromium; .ci/run installs it)",
+                allow_module_level=True)
+pytest.importorskip("viser", reason="viser is not installed (the viewer extra)")
+sync_playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed").sync_playwright
+
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync", "--no-first-run",
+         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]   # software WebGL, no GPU
+VIEWPORT = {"width": 1000, "height": 700}
+WAIT_S = 30.0            # for the page to connect, draw and answer
+BLANK_STD = 5.0          # 8-bit levels: a drawn scene varies more than an empty canvas
+OBJECT_CHANGE = 20.0     # mean 8-bit colour change where an object was, when it is hidden
+MOVED_M = 0.01           # the shot object moves more than this
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def until(condition, what: str, timeout: float = WAIT_S):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def viewer(tmp_path_factory):
+    from phirie_jax.view.config import ViewConfig
+    from phirie_jax.view.server import Viewer
+
+    out = converted_folder(tmp_path_factory.mktemp("view"))
+    viewer = Viewer(out, ViewConfig(port=free_port()))
+    yield viewer
+    viewer.close()
+
+
+def _object_screen_points(viewer, client) -> dict[int, tuple[float, float]]:
+    """Each object's Gaussian centre now, in the client's view (0–1 screen coordinates)."""
+    camera = client.camera
+    view = CameraView(float(camera.fov), float(camera.aspect), np.asarray(camera.wxyz), np.asarray(camera.position))
+    points = {}
+    for object_id, wxyz, position in viewer.live.motions():
+        from scipy.spatial.transform import Rotation
+
+        centre0 = viewer.objects[object_id].centers.astype(np.float64).mean(0)
+        centre = Rotation.from_quat(wxyz, scalar_first=True).apply(centre0) + position
+        found = screen_position(centre, view)
+        if found is not None and 0.05 < found[0] < 0.95 and 0.05 < found[1] < 0.95:
+            points[object_id] = found
+    return points
+
+
+def _image(png: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float64)
+
+
+def test_page_draws_the_objects_and_a_click_shoots_one(viewer, tmp_path):
+    with sync_playwright() as playwright:
+        context = playwright.chromium.launch_persistent_context(
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=FLAGS, viewport=VIEWPORT)
+        try:
+            page = context.new_page()
+            page.goto(viewer.url)
+            client = until(lambda: next(iter(viewer.server.get_clients().values()), None), "the page to connect")
+            canvas = page.locator("canvas").first
+            canvas.wait_for(state="visible", timeout=WAIT_S * 1000)
+            box = until(canvas.bounding_box, "the canvas")
+            until(lambda: _object_screen_points(viewer, client), "the view to show the objects")
+            page.wait_for_timeout(3000)  # the splats are sorted and drawn
+            shown = _image(page.screenshot(path=str(tmp_path / "scene.png")))
+            assert shown.std() > BLANK_STD, "the page is blank"
+
+            viewer.toggles["Background only"].value = True
+            until(lambda: not any(viewer._nodes[f"object {i}"].visible for i in viewer.live.object_ids),
+                  "the objects to be hidden")
+            page.wait_for_timeout(1500)
+            hidden = _image(page.screenshot(path=str(tmp_path / "background_only.png")))
+            viewer.toggles["Background only"].value = False
+            points = _object_screen_points(viewer, client)
+            for object_id, (u, v) in points.items():  # each object's own pixels change when it is hidden
+                x = int(box["x"] + u * box["width"])
+                y = int(box["y"] + v * box["height"])
+                patch = np.s_[max(y - 6, 0):y + 7, max(x - 6, 0):x + 7]
+                assert np.abs(shown[patch] - hidden[patch]).mean() > OBJECT_CHANGE, (object_id, (x, y))
+
+            page.wait_for_timeout(1500)
+            target, (u, v) = min(points.items(), key=lambda item: item[1][0])  # clear of the panel (right)
+            before = {i: p.copy() for i, _, p in viewer.live.motions()}
+            page.mouse.click(box["x"] + u * box["width"], box["y"] + v * box["height"])
+            shot = until(lambda: viewer.live.shots[-1] if viewer.live.shots else None, "the click to reach the server")
+            assert shot["hit"] == target, shot
+            moved = until(lambda: np.linalg.norm(
+                dict((i, p) for i, _, p in viewer.live.motions())[target] - before[target]) > MOVED_M,
+                "the shot object to move")
+            assert moved
+        finally:
+            context.close()
