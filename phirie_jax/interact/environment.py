@@ -13,6 +13,12 @@ is rasterized together, in one depth order (no image pasting).
 Interactions: ``shoot`` (an impulse along the ray through a camera pixel, ray-cast
 against the collision geometry), ``push`` (a kinematic pusher body driven along a
 line), ``place`` (drop or throw: set a body's pose and velocity).
+
+A robot (``load(robot=...)``, ``phirie_jax.interact.robot``) is merged into the MuJoCo world
+with ``MjSpec`` attach; each of its links carries Gaussians in its own frame and joins the
+body-attached set after the objects (``objects`` lists both: a link has ``id`` None), so every
+renderer path draws it like an object. Cameras: the capture's (by index or image name), the
+MJCF's and those on bodies (the robot's ``wrist``), by name, posed from the current state.
 """
 
 from __future__ import annotations
@@ -30,18 +36,22 @@ from phirie_jax import layout
 from phirie_jax.construct.physics.body import body_name
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply
+from phirie_jax.interact.robot.appearance import robot_gaussians
 from phirie_jax.io.transforms_json import read_transforms_json
 from phirie_jax.types import Camera, GaussianSplatData
 
 PUSHER = "pusher"
+ROBOT_PREFIX = "robot/"           # the merged robot's names (``robot.attach.PREFIX``)
+MJCF_CAMERA_SIZE = (160, 120)     # image size of an MJCF camera without a robot config
 PUSHER_HALF_SIZE = (0.02, 0.05, 0.03)  # a paddle: thin along the push direction
 
 
 @dataclasses.dataclass(frozen=True)
 class SceneObject:
-    """One simulated object: its body and where its canonical frame was at t = 0."""
+    """One body with Gaussians attached: a simulated object, or a robot link (``id`` None), and
+    where its Gaussians' frame was at t = 0 (a link's Gaussians are in its body frame)."""
 
-    id: int
+    id: int | None            # object id; None for a robot link
     body: str                 # MuJoCo body name
     body_id: int
     pose0: np.ndarray         # (4, 4) S_i(0): canonical → scene
@@ -86,8 +96,7 @@ def load_spec(out_dir: Path, with_pusher: bool = False):
     return spec
 
 
-def _load_model(out_dir: Path, with_pusher: bool):
-    spec = load_spec(out_dir, with_pusher)
+def _compile(spec, out_dir: Path):
     try:
         return spec.compile()
     except Exception as err:  # noqa: BLE001
@@ -103,11 +112,16 @@ class Environment:
     """One simulated world whose Gaussians follow its bodies (module docstring)."""
 
     def __init__(self, out_dir: Path, model, background: GaussianSplatData,
-                 objects: list[tuple[int, np.ndarray, GaussianSplatData]], cameras: list[Camera]):
+                 objects: list[tuple[int, np.ndarray, GaussianSplatData]], cameras: list[Camera],
+                 robot=None, spec=None):
+        """``robot``: the merged robot (``robot.setup.Robot``) or None; ``spec``: the ``MjSpec``
+        ``model`` was compiled from, when known (``spec()``)."""
         import mujoco
 
         self.out_dir = Path(out_dir)
         self.with_pusher = False  # whether ``model`` carries the pusher body (``load``)
+        self.robot = robot
+        self._spec = spec
         self.model = model
         self.data = mujoco.MjData(model)
         self.cameras = cameras
@@ -124,6 +138,18 @@ class Environment:
             parts.append(splats.to_kernel())
             body.append(np.full(splats.num, index, np.int32))
             start += splats.num
+        if robot is not None:
+            self.reset()  # a link's Gaussians are in its frame: its pose at home is its pose0
+            for body_id, splats in robot_gaussians(model, list(robot.bodies), robot.config.spacing,
+                                                   robot.config.shading, robot.config.seed):
+                if splats.sh_degree != background.sh_degree:
+                    splats = _match_degree(splats, background.sh_degree)
+                pose0 = body_matrix(self.data.xpos[body_id], self.data.xquat[body_id])
+                body.append(np.full(splats.num, len(self.objects), np.int32))
+                self.objects.append(SceneObject(None, model.body(body_id).name, body_id, pose0,
+                                                slice(start, start + splats.num)))
+                parts.append(splats.to_kernel())
+                start += splats.num
         self.background = background.to_kernel()
         empty = Gaussians(*(jnp.zeros((0,) + x.shape[1:], x.dtype) for x in
                             (self.background.means, self.background.quats, self.background.log_scales,
@@ -135,14 +161,30 @@ class Environment:
     # --- loading ---------------------------------------------------------------------
 
     @classmethod
-    def load(cls, out_dir: str | Path, with_pusher: bool = False) -> "Environment":
-        """Read a converted scene folder (``phirie convert`` output)."""
+    def load(cls, out_dir: str | Path, with_pusher: bool = False, robot=None) -> "Environment":
+        """Read a converted scene folder (``phirie convert`` output).
+
+        ``robot``: None, a model name or MJCF path (``"panda"``), or a ``RobotConfig``: the robot
+        is merged into the scene's world (``phirie_jax.interact.robot``).
+        """
         out_dir = Path(out_dir)
         manifest_path = out_dir / "manifest.json"
         if not manifest_path.is_file():
             raise SceneInputError(manifest_path, None, "missing (expected a `phirie convert` output folder)")
         manifest = json.loads(manifest_path.read_text())
-        model = _load_model(out_dir, with_pusher)
+        spec = load_spec(out_dir, with_pusher)
+        handle = None
+        if robot is not None:
+            from phirie_jax.interact.robot.config import RobotConfig
+            from phirie_jax.interact.robot.setup import merge_robot
+
+            config = robot if isinstance(robot, RobotConfig) else RobotConfig(model=str(robot))
+            accepted = [int(o["id"]) for o in manifest.get("objects", [])
+                        if o.get("status") == "accepted" and o.get("visual") and o.get("collision")]
+            model, handle = merge_robot(spec, config, out_dir / layout.SCENE_MJCF,
+                                        {i: body_name(i) for i in accepted})
+        else:
+            model = _compile(spec, out_dir)
         if not (out_dir / layout.BACKGROUND).is_file():
             raise SceneInputError(out_dir / layout.BACKGROUND, None, "missing (expected the background stage's PLY)")
         background = read_gaussian_ply(out_dir / layout.BACKGROUND)
@@ -154,9 +196,15 @@ class Environment:
             if splats.sh_degree != background.sh_degree:
                 splats = _match_degree(splats, background.sh_degree)
             objects.append((int(obj["id"]), np.asarray(obj["pose"], np.float64), splats))
-        env = cls(out_dir, model, background, objects, load_cameras(out_dir))
+        env = cls(out_dir, model, background, objects, load_cameras(out_dir), robot=handle, spec=spec)
         env.with_pusher = with_pusher
         return env
+
+    def spec(self):
+        """A copy of the ``MjSpec`` the model was compiled from (robot and pusher included)."""
+        if self._spec is None:
+            raise RuntimeError("this environment was built from a compiled model only")
+        return self._spec.copy()
 
     # --- simulation ------------------------------------------------------------------
 
@@ -164,6 +212,8 @@ class Environment:
         import mujoco
 
         mujoco.mj_resetData(self.model, self.data)
+        if self.robot is not None:
+            self.robot.set_home(self.model, self.data)
         mujoco.mj_forward(self.model, self.data)
         self._pose_t0 = self.body_poses()
 
@@ -205,9 +255,19 @@ class Environment:
         placements = jnp.asarray(self.placements(), jnp.float32).reshape(-1, 4, 4)
         return compose_scene(self.background, self.object_gaussians, self.body_index, placements)
 
-    def camera(self, camera: Camera | int) -> Camera:
+    def camera_names(self) -> list[str]:
+        """Names ``camera`` takes: the MJCF's cameras (the robot's without its prefix), then the
+        capture's image names."""
+        names = [self.model.camera(i).name for i in range(self.model.ncam)]
+        return [n.removeprefix(ROBOT_PREFIX) for n in names] + [c.name for c in self.cameras]
+
+    def camera(self, camera: Camera | int | str) -> Camera:
+        """A camera record: as given, the capture's k-th, or by name (``camera_names``): an MJCF
+        camera is posed by the current state (a camera on a body moves with it)."""
         if isinstance(camera, Camera):
             return camera
+        if isinstance(camera, str):
+            return self._named_camera(camera)
         if not 0 <= camera < len(self.cameras):
             raise SceneInputError(self.out_dir / layout.CAMERAS, "camera",
                                   f"{camera} (expected 0..{len(self.cameras) - 1})")
@@ -221,6 +281,19 @@ class Environment:
         if width is not None:
             cam = cam.scaled(width / cam.width)
         return render(self.gaussians(), cam, background=np.asarray(background, np.float32))
+
+    def _named_camera(self, name: str) -> Camera:
+        import mujoco
+
+        for candidate in (name, ROBOT_PREFIX + name):
+            cam = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, candidate)
+            if cam >= 0:
+                size = self.robot.config.camera_size if self.robot is not None else MJCF_CAMERA_SIZE
+                return mjcf_camera(self.model, self.data, cam, *size)
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise SceneInputError(self.out_dir / layout.CAMERAS, "camera", f"'{name}' (expected one of {self.camera_names()})")
 
     # --- interactions ----------------------------------------------------------------
 
@@ -309,6 +382,18 @@ class Environment:
             if on_step is not None:
                 on_step(i)
         self.data.mocap_pos[mocap] = [0.0, 0.0, -10.0]
+
+
+def mjcf_camera(model, data, camera: int, width: int, height: int) -> Camera:
+    """A MuJoCo camera (looks along −z, y up, vertical ``fovy``) as a pinhole ``Camera`` record
+    (OpenCV axes: x right, y down, z forward), posed from ``data``."""
+    rot = data.cam_xmat[camera].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
+    world_to_camera = np.eye(4)
+    world_to_camera[:3, :3] = rot.T
+    world_to_camera[:3, 3] = -rot.T @ data.cam_xpos[camera]
+    focal = 0.5 * height / np.tan(0.5 * np.radians(model.cam_fovy[camera]))
+    K = np.array([[focal, 0.0, 0.5 * width], [0.0, focal, 0.5 * height], [0.0, 0.0, 1.0]])
+    return Camera(model.camera(camera).name, K, world_to_camera, int(width), int(height))
 
 
 def _match_degree(splats: GaussianSplatData, degree: int) -> GaussianSplatData:

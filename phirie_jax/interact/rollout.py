@@ -51,6 +51,8 @@ def largest_object(env: Environment) -> int | None:
     """Id of the object whose Gaussians span the largest box (None without objects)."""
     best, size = None, -1.0
     for o in env.objects:
+        if o.id is None:  # a robot link
+            continue
         means = np.asarray(env.object_gaussians.means[o.gaussians])
         extent = float(np.prod(means.max(0) - means.min(0) + 1e-6)) if len(means) else 0.0
         if extent > size:
@@ -111,13 +113,13 @@ def rollout(env: Environment, config: RolloutConfig = RolloutConfig(), on_frame=
     first = to_uint8(env.render(config.camera, background=config.background, width=config.width).rgb)
     shot = env.shoot(config.camera, pixel, speed=config.speed) if pixel is not None else {"hit": None}
     frames = [first]
-    start = {o.id: env.placements()[i][:3, 3].copy() for i, o in enumerate(env.objects)}
+    start = {o.id: env.placements()[i][:3, 3].copy() for i, o in enumerate(env.objects) if o.id is not None}
     for i in range(config.frames):
         env.step(steps_per_frame)
         frames.append(to_uint8(env.render(config.camera, background=config.background, width=config.width).rgb))
         if on_frame is not None:
             on_frame(i)
     moved = {o.id: float(np.linalg.norm(env.placements()[i][:3, 3] - start[o.id]))
-             for i, o in enumerate(env.objects)}
+             for i, o in enumerate(env.objects) if o.id is not None}
     return {"frames": frames, "shot": shot, "target": target, "pixel": pixel, "moved_m": moved,
             "simulated_s": config.frames * steps_per_frame * env.timestep}

@@ -21,7 +21,7 @@ import dataclasses
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
-from phirie_jax.interact.robot.attach import STAND, Base
+from phirie_jax.interact.robot.attach import STAND, STAND_MARGIN, Base
 from phirie_jax.interact.robot.kinematics import Kinematics
 
 EDGE_CLEARANCE = 0.03      # m between the support's edge and the robot's footprint
@@ -107,6 +107,8 @@ def reach_band(kinematics: Kinematics, home, height: float, step: float = 0.02) 
 def _candidates(support: Support, low: np.ndarray, high: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """(position (3,), yaw) along the four edges, facing the centre; the root's footprint is
     ``low``..``high`` (2,) in its own frame, whose +x faces the centre."""
+    margin = STAND_MARGIN
+    corners = np.array([[x, y] for x in (low[0] - margin, high[0] + margin) for y in (low[1] - margin, high[1] + margin)])
     out = []
     for axis in range(2):
         for sign in (-1.0, 1.0):
@@ -114,9 +116,14 @@ def _candidates(support: Support, low: np.ndarray, high: np.ndarray) -> list[tup
             along = support.axes[1 - axis]
             edge = support.centre + outward * support.half[axis]
             for f in np.linspace(-0.75, 0.75, EDGE_POSITIONS):
-                p = edge + along * f * support.half[1 - axis] + outward * (high[0] + EDGE_CLEARANCE)
-                towards = support.centre - p
-                out.append((p, float(np.arctan2(towards[1], towards[0]))))
+                on_edge = edge + along * f * support.half[1 - axis]
+                p = on_edge + outward * (high[0] + EDGE_CLEARANCE)
+                for _ in range(2):  # the footprint turned to face the centre: clear the edge by its reach
+                    yaw = float(np.arctan2(*(support.centre - p)[1::-1]))
+                    c, s = np.cos(yaw), np.sin(yaw)
+                    turned = corners @ np.array([[c, s], [-s, c]])
+                    p = on_edge + outward * (float(np.max(turned @ -outward[:2])) + EDGE_CLEARANCE)
+                out.append((p, float(np.arctan2(*(support.centre - p)[1::-1]))))
     return out
 
 
@@ -152,20 +159,24 @@ def reachable(kinematics: Kinematics, home, base: Base, centres: np.ndarray) -> 
 
 
 def check_clear(model, data, robot_bodies: set[int], where, base: Base) -> None:
-    """``SceneInputError`` when a robot geom (the stand included) sinks more than ``PENETRATION_TOL``
-    into a geom of the scene (``data`` holds the home pose after ``mj_forward``)."""
+    """``SceneInputError`` when a colliding robot geom (the stand included) sinks more than
+    ``PENETRATION_TOL`` into a colliding geom of the scene (``data`` holds the home pose after
+    ``mj_forward``). Signed distances (``mj_geomDistance``), not contacts: the robot's base is
+    welded to the world, and MuJoCo makes no contacts between two geoms of the world."""
+    import mujoco
+
+    colliding = [g for g in range(model.ngeom) if model.geom_contype[g] or model.geom_conaffinity[g]]
+    mine = [g for g in colliding if int(model.geom_bodyid[g]) in robot_bodies]
+    scene = [g for g in colliding if int(model.geom_bodyid[g]) not in robot_bodies]
     stand = next((g for g in range(model.ngeom) if model.geom(g).name == STAND), -1)
     worst = None
-    for c in data.contact[:data.ncon]:
-        bodies = (int(model.geom_bodyid[c.geom1]), int(model.geom_bodyid[c.geom2]))
-        mine = [b in robot_bodies for b in bodies]
-        if mine[0] == mine[1]:
-            continue
-        other = c.geom2 if mine[0] else c.geom1
-        if stand in (c.geom1, c.geom2) and model.geom_type[other] == 0:  # the stand stands on the floor plane
-            continue
-        if -c.dist > PENETRATION_TOL and (worst is None or -c.dist > worst[1]):
-            worst = (model.geom(other).name or f"geom {other}", -c.dist)
+    for g in mine:
+        for other in scene:
+            if g == stand and model.geom_type[other] == mujoco.mjtGeom.mjGEOM_PLANE:
+                continue  # the stand stands on the floor
+            depth = -mujoco.mj_geomDistance(model, data, g, other, PENETRATION_TOL, None)
+            if depth > PENETRATION_TOL and (worst is None or depth > worst[1]):
+                worst = (model.geom(other).name or f"geom {other}", depth)
     if worst is not None:
         x, y, z = base.position
         raise SceneInputError(where, "robot base", f"({x:.3f}, {y:.3f}, {z:.3f}, yaw {np.degrees(base.yaw):.0f}°) "
