@@ -127,9 +127,84 @@ def _put(bank: mujoco.MjModel, values: dict[str, np.ndarray], nworld: int):
     return model
 
 
-def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
-        device: str | None = None) -> WarpBatchResult:
-    """Drop-test ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7) in MuJoCo Warp."""
+@dataclasses.dataclass
+class WarpDropBatch:
+    """A prepared batch: the bank on the device, its data, and (on a GPU) the phases' graphs.
+    ``simulate`` runs the protocol from the spawn poses; it can be called again (benchmarks)."""
+
+    model: object            # mujoco_warp.Model
+    data: object             # mujoco_warp.Data
+    qpos0: np.ndarray        # (N, 7)
+    config: DropTestConfig
+    early_exit: bool
+    device: str
+    settle_graph: object = None
+    free_graph: object = None
+
+    def _steps(self):
+        import mujoco_warp as mjw
+
+        model, data = self.model, self.data
+
+        def settle():
+            mjw.step(model, data)
+            data.qvel.zero_()
+
+        return settle, lambda: mjw.step(model, data)
+
+    def _phase(self, free: bool) -> None:
+        """MuJoCo's sleeping only in the free phase of an early-exit batch (settling zeroes velocities)."""
+        import mujoco_warp as mjw
+
+        flag = int(mjw.EnableBit.SLEEP)
+        on = free and self.early_exit
+        self.model.opt.enableflags = (self.model.opt.enableflags | flag) if on else (self.model.opt.enableflags & ~flag)
+
+    def _reset(self) -> None:
+        import mujoco_warp as mjw
+
+        mjw.reset_data(self.model, self.data)
+        self.data.qpos.assign(np.asarray(self.qpos0, np.float32))
+
+    def capture(self) -> None:
+        """Record both phases as CUDA graphs (a GPU only). Each phase's step runs once before its
+        capture, so Warp compiles and loads the kernels outside it; the data is reset after."""
+        import warp as wp
+
+        if not self.device.startswith("cuda"):
+            return
+        graphs = []
+        with wp.ScopedDevice(self.device):
+            for free, step in zip((False, True), self._steps()):
+                self._phase(free)
+                step()
+                with wp.ScopedCapture() as capture:
+                    for _ in range(GRAPH_STEPS):
+                        step()
+                graphs.append(capture.graph)
+            self.settle_graph, self.free_graph = graphs
+            self._reset()
+
+    def simulate(self) -> WarpBatchResult:
+        """The protocol from the spawn poses: qpos after settling and at the end."""
+        import warp as wp
+
+        settle, free = self._steps()
+        with wp.ScopedDevice(self.device):
+            self._reset()
+            self._phase(False)
+            _repeat(wp, self.settle_graph, self.config.settle_steps, settle)
+            settled = self.data.qpos.numpy().astype(np.float64)
+            self._phase(True)
+            steps = _free_phase(wp, self.free_graph, self.data, self.config.free_steps, self.early_exit, free)
+            wp.synchronize()
+            return WarpBatchResult(settled, self.data.qpos.numpy().astype(np.float64), steps, self.device)
+
+
+def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
+            device: str | None = None) -> WarpDropBatch:
+    """The batch of ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7), on
+    ``device`` (default: the first GPU, else the CPU), its graphs captured."""
     ok, why = available()
     if not ok:
         raise RuntimeError(why)
@@ -143,45 +218,27 @@ def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig,
         model = _put(bank, _per_world(bank, models, mesh_ids), n)
         # the protocol runs its own iteration counts on purpose: no overflow notices
         model.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
-        sleep_flag = int(mjw.EnableBit.SLEEP)
-        model.opt.enableflags &= ~sleep_flag          # settling zeroes velocities: nothing may sleep
         parts = bank.ngeom - 1
         data = mjw.make_data(bank, nworld=n, nconmax=CONTACTS_PER_PART * parts,
                              njmax=CONTACTS_PER_PART * parts * 4, naconmax=n * CONTACTS_PER_PART * parts)
-        data.qpos.assign(np.asarray(qpos0, np.float32).reshape(n, -1))
-        cuda = str(device).startswith("cuda")
-        settle = _graph(wp, lambda: _settle_step(mjw, model, data)) if cuda else None
-        _repeat(wp, settle, config.settle_steps, lambda: _settle_step(mjw, model, data))
-        settled = data.qpos.numpy().astype(np.float64)
-        if early_exit:
-            model.opt.enableflags |= sleep_flag
-        free = _graph(wp, lambda: mjw.step(model, data)) if cuda else None
-        steps = _free_phase(wp, free, data, config.free_steps, early_exit, lambda: mjw.step(model, data))
-        return WarpBatchResult(settled, data.qpos.numpy().astype(np.float64), steps, device)
+    batch = WarpDropBatch(model, data, np.asarray(qpos0, np.float64).reshape(n, -1), config, early_exit, str(device))
+    batch.capture()
+    return batch
 
 
-def _settle_step(mjw, model, data) -> None:
-    mjw.step(model, data)
-    data.qvel.zero_()
-
-
-def _graph(wp, step):
-    """A CUDA graph of ``GRAPH_STEPS`` calls of ``step``. Capturing launches nothing, so the
-    first step of a phase always runs before its capture: Warp compiles and loads kernels outside."""
-    step()
-    with wp.ScopedCapture() as capture:
-        for _ in range(GRAPH_STEPS):
-            step()
-    return capture.graph
+def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
+        device: str | None = None) -> WarpBatchResult:
+    """Drop-test ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7) in MuJoCo Warp."""
+    return prepare(models, qpos0, config, early_exit, device).simulate()
 
 
 def _repeat(wp, graph, steps: int, step) -> None:
-    """``steps`` protocol steps: whole graphs, then the remainder one by one (``_graph`` ran one)."""
+    """``steps`` protocol steps: whole graphs, then the remainder one by one."""
     done = 0
     if graph is not None:
-        done = 1 + (steps - 1) // GRAPH_STEPS * GRAPH_STEPS
-        for _ in range((steps - 1) // GRAPH_STEPS):
+        for _ in range(steps // GRAPH_STEPS):
             wp.capture_launch(graph)
+        done = steps // GRAPH_STEPS * GRAPH_STEPS
     for _ in range(done, steps):
         step()
 
@@ -191,7 +248,7 @@ def _free_phase(wp, graph, data, steps: int, early_exit: bool, step) -> int:
     if not early_exit:
         _repeat(wp, graph, steps, step)
         return steps
-    done = 1 if graph is not None else 0
+    done = 0
     while done < steps:
         chunk = min(GRAPH_STEPS, steps - done)
         if graph is not None and chunk == GRAPH_STEPS:
