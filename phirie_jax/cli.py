@@ -358,38 +358,76 @@ def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig =
 
 
 def simulate(out_dir: Annotated[Path, tyro.conf.Positional], out: Path = Path("rollout.mp4"),
-             shoot: tuple[float, float] | None = None, frames: int = 48, camera: int = 0,
-             speed: float = 2.5, width: int | None = None, fps: float = 24.0) -> None:
+             shoot: tuple[float, float] | None = None, frames: int = 48, camera: int | None = None,
+             speed: float = 2.5, width: int | None = None, fps: float | None = None,
+             robot: str | None = None, robot_base: tuple[float, float, float, float] | None = None,
+             task: Literal["shoot", "pick-place"] = "shoot", object: int | None = None,
+             to: tuple[float, float] | None = None) -> None:
     """Simulate a converted scene and render the rollout to a video from one of its cameras.
-    Default: shoot the largest object off its support so the filled background shows.
+    Default: shoot the largest object off its support so the filled background shows. With
+    `--robot panda --task pick-place` the arm picks `--object` and places it at `--to X Y`,
+    filmed from a scene camera and its wrist camera side by side.
 
     Args:
         out_dir: a `phirie convert` output folder.
         out: the video to write (.mp4).
         shoot: pixel (u, v) of the camera to shoot through; default: the largest object's centre.
         frames: frames rendered after the shot.
-        camera: camera index K (the K-th image in name order).
+        camera: camera index K (the K-th image in name order); default: 0 for a shot, for a
+            pick-and-place the camera that sees the object, the goal and the robot.
         speed: speed (m/s) the shot gives the hit object, along the ray.
         width: render width in pixels (default: the camera's).
-        fps: frames per second of simulated time and of the video.
+        fps: frames per second of simulated time and of the video (default 24; 12 for pick-place).
+        robot: a robot merged into the scene: `panda` (pip install 'phirie_jax[robot]') or the
+            path of an MJCF file.
+        robot_base: X Y Z YAW_DEG of the robot's base (default: beside the largest support).
+        task: `shoot` or `pick-place` (needs a robot; `panda` when none is named).
+        object: the object id to pick (default: the first the gripper fits and the arm reaches).
+        to: X Y goal of the picked object on its support (default: a free spot 15 cm away).
     """
     from rich.console import Console
 
+    from phirie_jax import layout
     from phirie_jax.interact.environment import Environment
     from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
 
+    if task == "pick-place":
+        from phirie_jax.interact.rollout import simulate_pick_place
+
+        result = simulate_pick_place(out_dir, out, robot or "panda", robot_base, object, to, camera, width, fps)
+        o = result["outcome"]
+        print(f"wrote {out} ({len(result['frames'])} frames, camera {result['camera']} | wrist); object {o['object']} "
+              f"{'placed' if o['success'] else 'missed'}: {100 * o['distance_m']:.1f} cm from ({o['goal'][0]:.3f}, "
+              f"{o['goal'][1]:.3f}), tilted {o['tilt_deg']:.1f}°")
+        return
+    fps = 24.0 if fps is None else fps
     try:
-        config = RolloutConfig(frames=frames, fps=fps, camera=camera, width=width, speed=speed, shoot_at=shoot)
+        config = RolloutConfig(frames=frames, fps=fps, camera=camera or 0, width=width, speed=speed, shoot_at=shoot)
     except ConfigValueError as err:  # the options are the config's fields, --shoot for shoot_at
         option = "--shoot" if err.field == "shoot_at" else "--" + err.field.replace("_", "-")
         raise OptionError(option, f"expected {err.expected}", err.shown) from None
-    env = Environment.load(out_dir)
+    env = Environment.load(out_dir, robot=_robot_config(robot, robot_base))
     with Console().status("simulating") as status:
         result = rollout(env, config, on_frame=lambda i: status.update(f"frame {i + 1}/{frames}"))
     write_video(out, result["frames"], fps)
+    if (Path(out_dir) / layout.REPORT).is_file():  # the report shows the rollout too
+        _write_report(Path(out_dir), ReportConfig(), video=out, frames=result["frames"])
     hit = result["shot"].get("hit")
     moved = ", ".join(f"{k}: {100 * v:.1f} cm" for k, v in result["moved_m"].items())
     print(f"wrote {out} ({len(result['frames'])} frames); shot hit object {hit}; moved {moved}")
+
+
+def _robot_config(robot: str | None, base):
+    if robot is None:
+        if base is not None:
+            raise OptionError("--robot-base", "needs --robot")
+        return None
+    from phirie_jax.interact.robot.config import RobotConfig
+
+    try:
+        return RobotConfig(model=robot, base=base)
+    except ConfigValueError as err:
+        raise OptionError("--robot-base", f"expected {err.expected}", err.shown) from None
 
 
 def demo(out: Path = Path("out/demo"), preset: Literal["tiny", "default", "large"] = "default",

@@ -207,10 +207,10 @@ def plan_pick_place(env, object_id: int, goal, config: PickPlaceConfig = PickPla
             target_rot = turn(s).as_matrix() if index == 0 else rot
             result = kin.solve(target, target_rot, q0=q, iterations=60)
             if result.position_error > WAYPOINT_TOL:
-                where = "the object" if index < 4 else "the goal"
-                raise UnreachableError(f"{where} of object {object_id} at ({target[0]:.3f}, {target[1]:.3f}, "
-                                       f"{target[2]:.3f}) is out of the arm's reach from its base "
-                                       f"({100 * result.position_error:.1f} cm short during '{name}')")
+                where = f"object {object_id}" if index < 5 else f"the goal ({goal[0]:.3f}, {goal[1]:.3f}) of object {object_id}"
+                raise UnreachableError(f"{where} is out of the arm's reach from its base: the hand stays "
+                                       f"{100 * result.position_error:.1f} cm short of ({target[0]:.3f}, {target[1]:.3f}, "
+                                       f"{target[2]:.3f}) during '{name}'")
             q = result.q
             rows.append(q)
             grips.append(gripper)
