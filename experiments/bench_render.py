@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import statistics
 import time
 from pathlib import Path
@@ -28,7 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.report import emit
 from kernels.composite import TileGrid  # noqa: E402
+from kernels.composite_pallas import PallasSettings  # noqa: E402
 from kernels.gaussians import Gaussians  # noqa: E402
 from kernels.project import project_gaussians  # noqa: E402
 from kernels.raster import RasterConfig, bin_gaussians, rasterize  # noqa: E402
@@ -113,6 +114,15 @@ def timed_compile(jitted, *args):
     return compiled, time.perf_counter() - t
 
 
+def compiled_memory_mb(compiled) -> float | None:
+    """Device memory one compiled program needs beyond its inputs: temporaries + outputs (MB)."""
+    try:
+        stats = compiled.memory_analysis()
+        return round((stats.temp_size_in_bytes + stats.output_size_in_bytes) / 2**20, 1)
+    except Exception:  # noqa: BLE001 (not every backend reports it)
+        return None
+
+
 def bench_jax(g, Ks, viewmats, width, height, base: RasterConfig, repeats, with_autodiff):
     render = jax.jit(lambda g, K, W, cfg: rasterize(g, K, W, width=width, height=height,
                                                     config=cfg), static_argnums=3)
@@ -137,31 +147,38 @@ def bench_jax(g, Ks, viewmats, width, height, base: RasterConfig, repeats, with_
                                        Ks[0], viewmats[0])
     grad_c, grad_compile = timed_compile(jax.jit(lambda g, K, W: grad(g, K, W, config)), g,
                                          Ks[0], viewmats[0])
+    compositor = config.resolved_compositor()
     result = {
+        "compositor": compositor,
         "capacity": config.capacity, "num_intersections_max": needed,
-        "longest_tile_list": longest, "slots": config.resolved_slots(
-            -(-width // config.tile_size) * -(-height // config.tile_size)),
-        "chunk": config.chunk, "sequential_forward": config.resolved_sequential(),
+        "longest_tile_list": longest,
         "compile_s": {"forward": round(fwd_compile, 2), "grad_custom_vjp": round(grad_compile, 2)},
+        "memory_mb": {"forward": compiled_memory_mb(fwd_c), "grad": compiled_memory_mb(grad_c)},
         "forward_ms": [], "fwd_bwd_custom_vjp_ms": [],
     }
+    if compositor == "pallas":
+        result["pallas"] = dataclasses.asdict(config.pallas)
+    else:
+        result.update(slots=config.resolved_slots(
+            -(-width // config.tile_size) * -(-height // config.tile_size)),
+            chunk=config.chunk, sequential_forward=config.resolved_sequential())
     result["loop_steps"] = [int(fwd_c(g, K, W).steps) for K, W in zip(Ks, viewmats)]
     for K, W in zip(Ks, viewmats):
-        result["forward_ms"].append(round(median_ms(lambda: fwd_c(g, K, W), repeats), 2))
+        result["forward_ms"].append(round(median_ms(lambda: fwd_c(g, K, W), repeats), 3))
         result["fwd_bwd_custom_vjp_ms"].append(
-            round(median_ms(lambda: grad_c(g, K, W), repeats), 2))
+            round(median_ms(lambda: grad_c(g, K, W), repeats), 3))
     # Where the forward time goes (first camera): projection, + binning, + compositing.
     grid = TileGrid(width, height, config.tile_size)
     project = jax.jit(lambda g, K, W: project_gaussians(g, K, W, width=width, height=height))
     binned = jax.jit(lambda g, K, W: bin_gaussians(
         project_gaussians(g, K, W, width=width, height=height), grid, config.capacity))
     result["forward_stages_ms"] = {
-        "project": round(median_ms(lambda: project(g, Ks[0], viewmats[0]), repeats), 2),
-        "project_and_bin": round(median_ms(lambda: binned(g, Ks[0], viewmats[0]), repeats), 2),
+        "project": round(median_ms(lambda: project(g, Ks[0], viewmats[0]), repeats), 3),
+        "project_and_bin": round(median_ms(lambda: binned(g, Ks[0], viewmats[0]), repeats), 3),
         "all": result["forward_ms"][0],
     }
     if with_autodiff:
-        auto = dataclasses.replace(config, backward="autodiff",
+        auto = dataclasses.replace(config, backward="autodiff", compositor="jax",
                                    tile_capacity=next_power_of_two(longest + 1))
         auto_c, auto_compile = timed_compile(jax.jit(lambda g, K, W: grad(g, K, W, auto)), g,
                                              Ks[0], viewmats[0])
@@ -173,17 +190,47 @@ def bench_jax(g, Ks, viewmats, width, height, base: RasterConfig, repeats, with_
         result["grad_max_rel_diff_custom_vs_autodiff"] = float(max(
             jnp.max(jnp.abs(x - y)) / (jnp.max(jnp.abs(y)) + 1e-30)
             for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b))))
-    return result
+    return result, (fwd_c, grad_c)
+
+
+def agreement(g, Ks, viewmats, programs_a, programs_b) -> dict:
+    """Largest differences between two renderers' images and gradients (first camera)."""
+    (fwd_a, grad_a), (fwd_b, grad_b) = programs_a, programs_b
+    out_a, out_b = fwd_a(g, Ks[0], viewmats[0]), fwd_b(g, Ks[0], viewmats[0])
+    ga, gb = grad_a(g, Ks[0], viewmats[0]), grad_b(g, Ks[0], viewmats[0])
+    return {
+        "rgb_max_abs_diff": float(jnp.max(jnp.abs(out_a.rgb - out_b.rgb))),
+        "alpha_max_abs_diff": float(jnp.max(jnp.abs(out_a.alpha - out_b.alpha))),
+        "grad_max_rel_diff": float(max(
+            jnp.max(jnp.abs(x - y)) / (jnp.max(jnp.abs(y)) + 1e-30)
+            for x, y in zip(jax.tree.leaves(ga), jax.tree.leaves(gb)))),
+    }
 
 
 def partial_render(width, height, config):
     return lambda g, K, W: rasterize(g, K, W, width=width, height=height, config=config)
 
 
+def load_prebuilt_gsplat(path: Path) -> None:
+    """Use a gsplat CUDA extension built earlier (``gsplat_cuda.so`` from its JIT build folder)
+    instead of compiling it at import: gsplat imports ``gsplat.csrc`` first."""
+    import importlib.util
+    import sys
+
+    import torch  # noqa: F401 (the extension links against torch's libraries)
+
+    spec = importlib.util.spec_from_file_location("gsplat_cuda", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sys.modules["gsplat.csrc"] = module
+
+
 def bench_gsplat(g, Ks, viewmats, width, height, repeats):
     try:
+        t0 = time.perf_counter()
         import torch
         from gsplat import rasterization
+        import_s = time.perf_counter() - t0  # includes gsplat's JIT build of its CUDA code if any
     except Exception as exc:  # noqa: BLE001 (any import failure means: not available here)
         return {"available": False, "reason": f"{type(exc).__name__}: {exc}"}
     if not torch.cuda.is_available():
@@ -221,15 +268,29 @@ def bench_gsplat(g, Ks, viewmats, width, height, repeats):
             times.append(1e3 * (time.perf_counter() - s))
         return statistics.median(times)
 
+    def peak_mb(fn):
+        """Peak memory allocated by ``fn`` beyond what was allocated before (MB)."""
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        before = torch.cuda.memory_allocated()
+        fn()
+        torch.cuda.synchronize()
+        return round((torch.cuda.max_memory_allocated() - before) / 2**20, 1)
+
     fwd, both = [], []
     for K, W in cameras:
         with torch.no_grad():
             fwd.append(round(median(lambda: run(K, W, False)), 3))
         both.append(round(median(lambda: run(K, W, True)), 3))
+    K, W = cameras[0]
+    with torch.no_grad():
+        memory = {"forward": peak_mb(lambda: run(K, W, False))}
+    memory["grad"] = peak_mb(lambda: run(K, W, True))
     import gsplat
 
-    return {"available": True, "version": gsplat.__version__, "forward_ms": fwd,
-            "fwd_bwd_ms": both}
+    return {"available": True, "version": gsplat.__version__, "import_s": round(import_s, 1),
+            "torch": torch.__version__, "forward_ms": fwd, "fwd_bwd_ms": both,
+            "memory_mb": memory}
 
 
 def main():
@@ -239,39 +300,68 @@ def main():
     parser.add_argument("--garden", type=Path, default=GARDEN, help="test_garden.npz")
     parser.add_argument("--gaussians", type=int, default=100_000)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--compositor", choices=["auto", "pallas", "jax"], default="auto",
+                        help="RasterConfig.compositor (auto: Pallas on a GPU)")
+    parser.add_argument("--compare-jax", action="store_true",
+                        help="also time the pure-JAX compositor and compare images and gradients")
+    parser.add_argument("--pallas-chunk", type=int, default=PallasSettings.chunk)
+    parser.add_argument("--pallas-warps", type=int, default=PallasSettings.num_warps)
     parser.add_argument("--slots", type=int, default=None)
-    parser.add_argument("--chunk", type=int, default=32)
+    parser.add_argument("--chunk", type=int, default=32, help="the JAX compositor's chunk")
     parser.add_argument("--no-autodiff", action="store_true")
+    parser.add_argument("--no-gsplat", action="store_true")
+    parser.add_argument("--gsplat-extension", type=Path, default=None,
+                        help="a prebuilt gsplat_cuda.so (skips gsplat's JIT build)")
     parser.add_argument("--sequential", action="store_true",
                         help="fused sequential chunk forward (RasterConfig.sequential)")
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
 
     if args.scene == "garden":
         g, Ks, viewmats, width, height = garden_scene(args.tile_scene, args.garden)
     else:
         g, Ks, viewmats, width, height = random_scene(args.gaussians)
-    base = RasterConfig(chunk=args.chunk, slots=args.slots,
-                        sequential=args.sequential)
+    base = RasterConfig(chunk=args.chunk, slots=args.slots, sequential=args.sequential,
+                        compositor=args.compositor,
+                        pallas=PallasSettings(chunk=args.pallas_chunk,
+                                              num_warps=args.pallas_warps))
     result = {
         "scene": args.scene + ("-tiled" if args.tile_scene else ""),
         "backend": jax.default_backend(), "device": str(jax.devices()[0]),
         "jax": jax.__version__, "num_gaussians": g.num, "width": width, "height": height,
         "cameras": len(Ks), "sh_degree": g.sh_degree,
     }
-    result["ours"] = bench_jax(g, Ks, viewmats, width, height, base, args.repeats,
+    ours, programs = bench_jax(g, Ks, viewmats, width, height, base, args.repeats,
                                not args.no_autodiff)
-    ours = result["ours"]
-    result["ours"]["gaussians_per_s_forward"] = round(
-        g.num / (statistics.median(ours["forward_ms"]) / 1e3))
-    gs = bench_gsplat(g, Ks, viewmats, width, height, args.repeats)
+    result["ours"] = ours
+    ours["gaussians_per_s_forward"] = round(g.num / (statistics.median(ours["forward_ms"]) / 1e3))
+    if args.compare_jax and ours["compositor"] != "jax":
+        reference, ref_programs = bench_jax(g, Ks, viewmats, width, height,
+                                            dataclasses.replace(base, compositor="jax"),
+                                            args.repeats, False)
+        result["ours_jax_compositor"] = reference
+        result["pallas_vs_jax_compositor"] = agreement(g, Ks, viewmats, programs, ref_programs)
+        result["ratio_pallas_over_jax_compositor"] = {
+            "forward": round(statistics.median(ours["forward_ms"])
+                             / statistics.median(reference["forward_ms"]), 3),
+            "fwd_bwd": round(statistics.median(ours["fwd_bwd_custom_vjp_ms"])
+                             / statistics.median(reference["fwd_bwd_custom_vjp_ms"]), 3),
+        }
+    if args.no_gsplat:
+        gs = {"available": False, "reason": "--no-gsplat"}
+    else:
+        if args.gsplat_extension is not None:
+            load_prebuilt_gsplat(args.gsplat_extension)
+        gs = bench_gsplat(g, Ks, viewmats, width, height, args.repeats)
     result["gsplat"] = gs
     if gs.get("available"):
         result["ratio_ours_over_gsplat"] = {
-            "forward": round(statistics.median(ours["forward_ms"]) / statistics.median(gs["forward_ms"]), 2),
+            "forward": round(statistics.median(ours["forward_ms"])
+                             / statistics.median(gs["forward_ms"]), 3),
             "fwd_bwd": round(statistics.median(ours["fwd_bwd_custom_vjp_ms"])
-                             / statistics.median(gs["fwd_bwd_ms"]), 2),
+                             / statistics.median(gs["fwd_bwd_ms"]), 3),
         }
-    print(json.dumps(result, indent=1))
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -8,8 +8,10 @@ Pipeline for one camera (``rasterize``), all static shapes:
    finds its Gaussian by a running max, O(C)), then stably sort the slots by tile
    id. Each tile's list is thus depth-ordered; its range is found by searching the
    sorted ids. Non-differentiable bookkeeping.
-3. ``composite``: per-tile front-to-back compositing through a work queue of
-   tiles with early exit, with a recompute-based custom VJP (``kernels.composite``).
+3. Compositing, front to back per tile with early exit and a recompute-based custom VJP:
+   on a GPU the Pallas kernels of ``kernels.composite_pallas`` (one program per tile);
+   elsewhere, and as their reference, the pure-JAX work queue of ``kernels.composite``
+   (``RasterConfig.compositor`` picks).
 
 Nothing is dropped silently: the output reports the intersections needed
 (``num_intersections``) and ``overflow`` when they did not fit the buffer (or, for
@@ -29,13 +31,15 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from kernels.composite import TileGrid, TileLists, composite, composite_scan
+from kernels.composite import NUM_GEOMETRY, TileGrid, TileLists, composite, composite_scan
+from kernels.composite_pallas import PallasSettings, composite_pallas
 from kernels.gaussians import Gaussians
 from kernels.project import NEAR_PLANE, Projected, project_gaussians
 from kernels.pytree import pytree_dataclass, static_field
 
 MAX_INTERSECTIONS = 1 << 30  # beyond this the int32 bookkeeping could overflow: always "overflow"
 DEPTH_EPS = 1e-10            # guards depth / alpha where nothing was hit
+BASE_COLUMNS = NUM_GEOMETRY + 4  # composite rows before the features: geometry, rgb, depth
 # Tiles in flight (kernels.composite). A CPU wants few: idle slots cost work. A GPU wants
 # enough to fill it, but the loop runs about as many steps as the longest tile needs
 # whatever the slot count, so extra slots mostly compute masked work. Measured on an H100
@@ -58,6 +62,10 @@ class RasterConfig:
     sequential: composite a chunk as the literal 3DGS loop unrolled (one fused kernel)
         instead of the matrix-product formulation; same results, see
         ``resolved_sequential``. The backward is the same either way.
+    compositor: "pallas" (``kernels.composite_pallas``), "jax" (``kernels.composite``) or
+        "auto": Pallas on a GPU with the custom backward, JAX otherwise.
+    pallas: the Pallas compositor's settings (``interpret=True`` runs it on a CPU).
+        ``chunk``, ``slots`` and ``sequential`` above are the JAX compositor's.
     """
 
     capacity: int = 1 << 18
@@ -68,6 +76,18 @@ class RasterConfig:
     backward: str = "custom"
     tile_capacity: int = 1 << 12
     sequential: bool = False
+    compositor: str = "auto"
+    pallas: PallasSettings = PallasSettings()
+
+    def resolved_compositor(self) -> str:
+        """"pallas" or "jax" (see ``compositor``)."""
+        if self.compositor == "auto":
+            gpu = jax.default_backend() in ("gpu", "cuda")
+            return "pallas" if gpu and self.backward == "custom" else "jax"
+        if self.compositor not in ("pallas", "jax"):
+            raise ValueError(f"RasterConfig.compositor: {self.compositor!r} "
+                             "(expected 'auto', 'pallas' or 'jax')")
+        return self.compositor
 
     def resolved_sequential(self) -> bool:
         """Chunk compositing as one fused sequential loop? Off by default: on an H100 it
@@ -171,14 +191,42 @@ def rasterize(gaussians: Gaussians, K, world_to_camera, *, width: int, height: i
     if features is None:
         features = jnp.zeros((n, 0), dtype)
     background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
-    params = jnp.concatenate([
-        proj.means2d, proj.conics, proj.opacities[:, None], proj.colors, proj.depths[:, None],
-        features.astype(dtype)], axis=1)  # (N, D) rows of kernels.composite
+    params = composite_params(proj, features)  # (N, D) rows of kernels.composite
 
     lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, config.capacity)
-    max_tile = jnp.max(lists.tile_count)
-    overflow = needed > config.capacity
-    if config.backward == "custom":
+    acc, trans, steps, too_long = composite_rows(grid, config, params, lists)
+    rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background)
+    return RasterOutput(
+        rgb=rgb, depth=depth, alpha=alpha, features=feats,
+        radii=jax.lax.stop_gradient(proj.radii),
+        num_visible=jnp.sum(proj.visible, dtype=jnp.int32),
+        num_intersections=needed,
+        max_tile_intersections=jnp.max(lists.tile_count),
+        overflow=(needed > config.capacity) | too_long,
+        steps=steps,
+        capacity=config.capacity,
+    )
+
+
+def composite_params(proj: Projected, features):
+    """Rows of ``kernels.composite`` for projected Gaussians: features (N, F) →
+    (N, 6 + 3 + 1 + F) [μx, μy, a, b, c, opacity, r, g, b, depth, features...]."""
+    return jnp.concatenate([
+        proj.means2d, proj.conics, proj.opacities[:, None], proj.colors, proj.depths[:, None],
+        features.astype(proj.means2d.dtype)], axis=1)
+
+
+def composite_rows(grid: TileGrid, config: RasterConfig, params, lists: TileLists):
+    """Composite parameter rows params (N, D) through depth-sorted tile lists with the
+    configured compositor.  Returns acc (NT, P, D − 6), T (NT, P), steps () int32 and
+    too_long () bool (a tile list longer than the autodiff scan covers: incomplete)."""
+    too_long = jnp.zeros((), bool)
+    if config.resolved_compositor() == "pallas":
+        if config.backward != "custom":
+            raise ValueError("RasterConfig: the Pallas compositor has only the custom backward")
+        acc, trans, steps = composite_pallas(grid, config.pallas, params, lists.gaussian_ids,
+                                             lists.tile_start, lists.tile_count)
+    elif config.backward == "custom":
         slots = config.resolved_slots(grid.num_tiles)
         acc, trans, steps = composite(grid, slots, config.chunk, config.resolved_sequential(),
                                       params, lists.gaussian_ids, lists.tile_start,
@@ -187,25 +235,18 @@ def rasterize(gaussians: Gaussians, K, world_to_camera, *, width: int, height: i
         max_chunks = -(-config.tile_capacity // config.chunk)
         acc, trans = composite_scan(grid, config.chunk, max_chunks, params, lists)
         steps = jnp.asarray(max_chunks, jnp.int32)
-        overflow = overflow | (max_tile > max_chunks * config.chunk)
+        too_long = jnp.max(lists.tile_count) > max_chunks * config.chunk
     else:
         raise ValueError(f"RasterConfig.backward: {config.backward!r} (expected 'custom' or 'autodiff')")
+    return acc, trans, steps, too_long
 
+
+def images_from_tiles(grid: TileGrid, acc, trans, background):
+    """Per-tile sums acc (NT, P, 4 + F) and transmittance trans (NT, P) → rgb (H, W, 3) over
+    background (3,), depth (H, W), alpha (H, W), features (H, W, F)."""
     acc = _tiles_to_image(grid, acc)
     trans = _tiles_to_image(grid, trans)
-    return RasterOutput(
-        rgb=acc[..., :3] + trans[..., None] * background,
-        depth=acc[..., 3],
-        alpha=1.0 - trans,
-        features=acc[..., 4:],
-        radii=jax.lax.stop_gradient(proj.radii),
-        num_visible=jnp.sum(proj.visible, dtype=jnp.int32),
-        num_intersections=needed,
-        max_tile_intersections=max_tile,
-        overflow=overflow,
-        steps=steps,
-        capacity=config.capacity,
-    )
+    return (acc[..., :3] + trans[..., None] * background, acc[..., 3], 1.0 - trans, acc[..., 4:])
 
 
 def render_batch(gaussians: Gaussians, Ks, world_to_cameras, *, width: int, height: int,

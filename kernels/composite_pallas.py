@@ -1,0 +1,278 @@
+"""Per-tile front-to-back compositing as Pallas kernels: the GPU path of ``kernels.composite``.
+
+Same inputs, rules and outputs as ``kernels.composite.composite``: parameter rows (N, D) =
+[μx, μy, a, b, c, opacity, features...] and depth-sorted tile lists (``TileLists``). One
+program per tile, its P = T×T pixels one block: the tile's list is walked in chunks of B
+entries, each composited as a (P, B) block whose running transmittances come from a
+cumulative sum of log(1 − α) along the chunk (one scan, no per-entry loop), until every
+pixel is saturated or the list ends. A GPU runs the tiles as independent programs, so each
+stops after its own work and no work queue is needed (``kernels.composite`` needs one to
+get the same early exit inside one XLA loop).
+
+The custom VJP walks each tile back to front from its last contributor, recovering Tᵢ by
+division as 3DGS does (safe: α ≤ 0.99 and T ≥ 1e-4), reduces each entry's gradient over the
+tile's pixels and adds it to its Gaussian's row with atomic adds (the order of those float
+additions varies from run to run: gradients agree to rounding, not bit for bit).
+
+Lowered through Triton on a GPU; ``interpret=True`` runs the same kernel bodies on any
+backend (the CPU tests compare them with ``kernels.composite``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+
+from kernels.composite import ALPHA_MAX, NUM_GEOMETRY, T_MIN, TileGrid, TileLists
+from kernels.project import ALPHA_MIN
+
+
+@dataclasses.dataclass(frozen=True)
+class PallasSettings:
+    """Static settings of the Pallas compositor (hashable: part of the program's key).
+
+    chunk: list entries composited per step (B, a power of two). Larger chunks mean fewer
+        loop steps but more wasted work after a tile saturates and more registers.
+    num_warps: warps per tile program (Triton).
+    interpret: run the kernels in Pallas' interpreter (any backend; for tests).
+    """
+
+    chunk: int = 16
+    num_warps: int = 4
+    interpret: bool = False
+
+    def __post_init__(self):
+        if self.chunk < 1 or self.chunk & (self.chunk - 1):
+            raise ValueError(f"PallasSettings.chunk: {self.chunk} (expected a power of two)")
+
+
+def _pixel_centres(grid: TileGrid, tile, dtype: jnp.dtype):
+    """Pixel centres of tile ``tile`` () int32: x (P,), y (P,) and inside (P,) bool."""
+    ts = grid.tile_size
+    local = jnp.arange(grid.tile_pixels, dtype=jnp.int32)
+    px = (tile % grid.tiles_x) * ts + local % ts
+    py = (tile // grid.tiles_x) * ts + local // ts
+    inside = (px < grid.width) & (py < grid.height)
+    return px.astype(dtype) + 0.5, py.astype(dtype) + 0.5, inside
+
+
+def _load_chunk(ids_ref, params_ref, start, end, first, chunk: int, num_columns: int):
+    """Entries [first, first + B) of a tile's list that starts at ``start`` () and whose
+    entries before ``end`` () are wanted (first () int32); ids_ref (C,), params_ref (N, D) refs.
+
+    Returns pos (B,) int32 list positions, valid (B,) bool, ids (B,) int32 (0 where not
+    valid) and the D parameter columns, each (B,) (0 where not valid).
+    """
+    pos = first + jnp.arange(chunk, dtype=jnp.int32)
+    valid = pos < end
+    slot = jnp.minimum(start + pos, ids_ref.shape[0] - 1)
+    ids = plgpu.load(ids_ref.at[slot], mask=valid, other=0)
+    columns = [plgpu.load(params_ref.at[ids, k], mask=valid, other=0.0)
+               for k in range(num_columns)]
+    return pos, valid, ids, columns
+
+
+def _chunk_alpha(px, py, columns: list, valid):
+    """α of B entries at P pixels: px (P,), py (P,), columns: D arrays (B,), valid (B,) →
+    alpha (P, B) (0 where skipped), gauss (P, B), raw o·G (P, B), dx, dy (P, B)."""
+    mx, my, a, b, c, opacity = columns[:NUM_GEOMETRY]
+    dx = px[:, None] - mx[None, :]
+    dy = py[:, None] - my[None, :]
+    sigma = -0.5 * (a[None, :] * dx * dx + c[None, :] * dy * dy) - b[None, :] * dx * dy
+    gauss = jnp.exp(sigma)
+    raw = opacity[None, :] * gauss
+    alpha = jnp.minimum(raw, ALPHA_MAX)
+    alpha = jnp.where(valid[None, :] & (alpha >= ALPHA_MIN), alpha, 0.0)
+    return alpha, gauss, raw, dx, dy
+
+
+def _forward_kernel(grid: TileGrid, chunk: int, start_ref, count_ref, ids_ref, params_ref,
+                    acc_ref, trans_ref, last_ref):
+    """One tile, front to back.  start_ref (NT,) int32; count_ref (NT,) int32; ids_ref (C,) int32;
+    params_ref (N, D); out: acc_ref (NT, CH, P), trans_ref (NT, P), last_ref (NT, P) int32
+    (1 + list position of each pixel's last contributor, 0 if none)."""
+    tile = pl.program_id(0)
+    num_columns = params_ref.shape[1]
+    channels = num_columns - NUM_GEOMETRY
+    dtype = params_ref.dtype
+    start, count = start_ref[tile], count_ref[tile]
+    px, py, inside = _pixel_centres(grid, tile, dtype)
+    npix = grid.tile_pixels
+    n_chunks = (count + chunk - 1) // chunk
+
+    def cond(carry):
+        i, _, done, _, _ = carry
+        return (i < n_chunks) & (jnp.min(done.astype(jnp.int32)) == 0)
+
+    def body(carry):
+        i, trans, done, last, acc = carry
+        pos, valid, _, columns = _load_chunk(ids_ref, params_ref, start, count, i * chunk,
+                                             chunk, num_columns)
+        alpha, _, _, _, _ = _chunk_alpha(px, py, columns, valid)
+        log_keep = jnp.log1p(-alpha)                      # (P, B), ≥ log(0.01)
+        running = jnp.cumsum(log_keep, axis=1)
+        incl = trans[:, None] * jnp.exp(running)          # T after each entry, no stop
+        excl = trans[:, None] * jnp.exp(running - log_keep)
+        # T only decreases: once an entry fails the floor every later one does too, so
+        # ``active`` is exactly what the sequential 3DGS loop would add.
+        active = (~done)[:, None] & (alpha > 0.0) & (incl >= T_MIN)
+        weights = jnp.where(active, alpha * excl, 0.0)
+        acc = tuple(a + jnp.sum(weights * f[None, :], axis=1)
+                    for a, f in zip(acc, columns[NUM_GEOMETRY:]))
+        done = done | (trans * jnp.exp(jnp.sum(log_keep, axis=1)) < T_MIN)
+        trans = jnp.min(jnp.where(active, incl, trans[:, None]), axis=1)
+        last = jnp.maximum(last, jnp.max(jnp.where(active, pos[None, :] + 1, 0), axis=1))
+        return i + 1, trans, done, last, acc
+
+    carry = (jnp.int32(0), jnp.ones((npix,), dtype), ~inside, jnp.zeros((npix,), jnp.int32),
+             tuple(jnp.zeros((npix,), dtype) for _ in range(channels)))
+    _, trans, _, last, acc = jax.lax.while_loop(cond, body, carry)
+    for k in range(channels):
+        acc_ref[tile, k, :] = acc[k]
+    trans_ref[tile, :] = trans
+    last_ref[tile, :] = last
+
+
+def _backward_kernel(grid: TileGrid, chunk: int, interpret: bool, start_ref, ids_ref,
+                     params_ref, trans_ref, last_ref, g_acc_ref, g_trans_ref, zeros_ref,
+                     grads_ref):
+    """One tile, back to front.  start_ref (NT,) int32; ids_ref (C,) int32; params_ref (N, D);
+    trans_ref (NT, P) final T; last_ref (NT, P) int32; g_acc_ref (NT, CH, P) and g_trans_ref
+    (NT, P) output cotangents; zeros_ref (N + 1, D) aliased to grads_ref (N + 1, D), into which
+    each entry's gradient is added (row N takes the adds of padding entries)."""
+    del zeros_ref  # the same buffer as grads_ref
+    tile = pl.program_id(0)
+    num_columns = params_ref.shape[1]
+    channels = num_columns - NUM_GEOMETRY
+    dummy = params_ref.shape[0]
+    start = start_ref[tile]
+    px, py, _ = _pixel_centres(grid, tile, params_ref.dtype)
+    trans_final = trans_ref[tile, :]
+    last = last_ref[tile, :]
+    g_acc = [g_acc_ref[tile, k, :] for k in range(channels)]
+    end = jnp.max(last)  # entries after every pixel's last contributor changed nothing
+    n_chunks = (end + chunk - 1) // chunk
+
+    def body(j, carry):
+        trans_after, rg_after = carry  # rg: g·(everything behind this chunk), T·g_T included
+        pos, valid, ids, columns = _load_chunk(ids_ref, params_ref, start, end,
+                                               (n_chunks - 1 - j) * chunk, chunk, num_columns)
+        alpha, gauss, raw, dx, dy = _chunk_alpha(px, py, columns, valid)
+        active = (alpha > 0.0) & (pos[None, :] < last[:, None])
+        alpha = jnp.where(active, alpha, 0.0)
+        log_keep = jnp.log1p(-alpha)
+        running = jnp.cumsum(log_keep, axis=1)
+        # T before the chunk = T after / Π(1 − α) (3DGS's division, as one exp of a sum).
+        trans_before = trans_after * jnp.exp(-jnp.sum(log_keep, axis=1))
+        t_excl = trans_before[:, None] * jnp.exp(running - log_keep)
+        weights = alpha * t_excl
+        features = columns[NUM_GEOMETRY:]
+        g_feat = g_acc[0][:, None] * features[0][None, :]
+        for g, f in zip(g_acc[1:], features[1:]):
+            g_feat = g_feat + g[:, None] * f[None, :]        # (P, B): g · f_j
+        contrib = weights * g_feat
+        contrib_total = jnp.sum(contrib, axis=1)
+        behind = (rg_after + contrib_total)[:, None] - jnp.cumsum(contrib, axis=1)  # Σ_{k > j}
+        d_alpha = jnp.where(active, t_excl * g_feat - behind / (1.0 - alpha), 0.0)
+        d_raw = jnp.where(raw < ALPHA_MAX, d_alpha, 0.0)     # the clamp has zero slope
+        d_sigma = d_raw * raw                                # d(o·e^σ)/dσ = o·e^σ
+        a, b, c = (x[None, :] for x in columns[2:5])
+        grads = [
+            jnp.sum(d_sigma * (a * dx + b * dy), axis=0),    # ∂σ/∂μx = a dx + b dy
+            jnp.sum(d_sigma * (b * dx + c * dy), axis=0),
+            jnp.sum(d_sigma * (-0.5 * dx * dx), axis=0),
+            jnp.sum(d_sigma * (-dx * dy), axis=0),
+            jnp.sum(d_sigma * (-0.5 * dy * dy), axis=0),
+            jnp.sum(d_raw * gauss, axis=0),                  # ∂α/∂o = G
+        ] + [jnp.sum(weights * g[:, None], axis=0) for g in g_acc]  # ∂/∂f_j = w_j g
+        rows = jnp.where(valid, ids, dummy)
+        for k, grad in enumerate(grads):
+            # The interpreter has no masked atomics; padding entries add 0 to row N anyway.
+            plgpu.atomic_add(grads_ref, (rows, k), grad, mask=None if interpret else valid)
+        return trans_before, rg_after + contrib_total
+
+    jax.lax.fori_loop(0, n_chunks, body, (trans_final, trans_final * g_trans_ref[tile, :]))
+
+
+def _compiler_params(settings: PallasSettings):
+    return None if settings.interpret else plgpu.CompilerParams(num_warps=settings.num_warps)
+
+
+def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists):
+    """Forward pass over every tile.  params (N, D) → acc (NT, P, CH), T (NT, P),
+    last (NT, P) int32 (1 + list position of the last contributor, 0 if none)."""
+    nt, npix = grid.num_tiles, grid.tile_pixels
+    channels = params.shape[1] - NUM_GEOMETRY
+    acc, trans, last = pl.pallas_call(
+        partial(_forward_kernel, grid, settings.chunk),
+        out_shape=(jax.ShapeDtypeStruct((nt, channels, npix), params.dtype),
+                   jax.ShapeDtypeStruct((nt, npix), params.dtype),
+                   jax.ShapeDtypeStruct((nt, npix), jnp.int32)),
+        grid=(nt,),
+        interpret=settings.interpret,
+        compiler_params=_compiler_params(settings),
+        name="composite_forward",
+    )(lists.tile_start, lists.tile_count, lists.gaussian_ids, params)
+    return jnp.swapaxes(acc, 1, 2), trans, last
+
+
+def composite_pallas_backward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists,
+                              trans, last, g_acc, g_trans):
+    """d params (N, D) from output cotangents g_acc (NT, P, CH), g_trans (NT, P), given the
+    forward's params (N, D), trans (NT, P) final transmittance and last (NT, P) int32."""
+    n, d = params.shape
+    grads = pl.pallas_call(
+        partial(_backward_kernel, grid, settings.chunk, settings.interpret),
+        out_shape=jax.ShapeDtypeStruct((n + 1, d), params.dtype),
+        grid=(grid.num_tiles,),
+        input_output_aliases={7: 0},
+        interpret=settings.interpret,
+        compiler_params=_compiler_params(settings),
+        name="composite_backward",
+    )(lists.tile_start, lists.gaussian_ids, params, trans, last,
+      jnp.swapaxes(g_acc, 1, 2).astype(params.dtype), g_trans.astype(params.dtype),
+      jnp.zeros((n + 1, d), params.dtype))
+    return grads[:n]
+
+
+def _steps(chunk: int, last):
+    """Chunks walked by the longest-running tile: last (NT, P) int32 → () int32."""
+    return (jnp.max(last) + chunk - 1) // chunk
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def composite_pallas(grid: TileGrid, settings: PallasSettings, params, gaussian_ids, tile_start,
+                     tile_count):
+    """acc (NT, P, CH), final transmittance T (NT, P) and chunk steps () int32 of the longest
+    tile, with a custom recompute-based VJP (``kernels.composite.composite``'s contract).
+    params (N, D) is differentiable; gaussian_ids (C,), tile_start (NT,), tile_count (NT,)
+    int32 are bookkeeping."""
+    acc, trans, last = composite_pallas_forward(grid, settings, params,
+                                                TileLists(gaussian_ids, tile_start, tile_count))
+    return acc, trans, _steps(settings.chunk, last)
+
+
+def _composite_pallas_fwd(grid: TileGrid, settings: PallasSettings, params, gaussian_ids,
+                          tile_start, tile_count):
+    """Forward and residuals; params (N, D), gaussian_ids (C,), tile_start (NT,), tile_count (NT,)."""
+    lists = TileLists(gaussian_ids, tile_start, tile_count)
+    acc, trans, last = composite_pallas_forward(grid, settings, params, lists)
+    return (acc, trans, _steps(settings.chunk, last)), (params, lists, trans, last)
+
+
+def _composite_pallas_bwd(grid: TileGrid, settings: PallasSettings, residuals: tuple,
+                          cotangents: tuple):
+    """VJP: residuals (params, lists, T, last), cotangents (g_acc, g_T, _)."""
+    params, lists, trans, last = residuals
+    g_acc, g_trans, _ = cotangents  # the step count is an integer: no cotangent
+    d_params = composite_pallas_backward(grid, settings, params, lists, trans, last, g_acc,
+                                         g_trans)
+    return d_params, None, None, None
+
+
+composite_pallas.defvjp(_composite_pallas_fwd, _composite_pallas_bwd)
