@@ -23,6 +23,7 @@ from phirie_jax.frame.config import FrameConfig
 from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.pipeline import ConvertConfig
+from phirie_jax.report.config import ReportConfig
 from phirie_jax.view.config import ViewConfig
 from phirie_jax.ranges import (
     AT_LEAST_ONE,
@@ -41,18 +42,28 @@ Scene = Annotated[Path, tyro.conf.Positional]
 def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = None,
          json_out: Annotated[bool, tyro.conf.arg(name="json")] = False, allow_outside_paths: bool = False) -> None:
     """Report what a scene folder (or a Gaussian PLY) holds: layout, Gaussians, cameras,
-    images, surface mesh, masks, candidates and scene bounds.
+    images, surface mesh, masks, candidates and scene bounds; of a `phirie convert` output
+    folder: its frame, each object (status, candidate, drop test, mass, parts), the background,
+    the files written and the stages' times.
 
     Args:
-        scene: a scene folder (COLMAP, nerfstudio or ScanNet++ layout) or a Gaussian PLY.
+        scene: a scene folder (COLMAP, nerfstudio or ScanNet++ layout), a Gaussian PLY, or a
+            converted folder (it holds manifest.json).
         gaussians: Gaussian PLY to use instead of the one found in the folder.
         surface: surface mesh to use instead of the one found in the folder.
         json_out: print the facts as JSON instead of a table.
         allow_outside_paths: read images the cameras name outside the scene folder (refused by default).
     """
-    from phirie_jax.info import scene_facts
+    from phirie_jax.info import converted_facts, is_converted, scene_facts
     from phirie_jax.io.scene import load_scene
 
+    if is_converted(scene):
+        facts = converted_facts(scene)
+        if json_out:
+            print(json.dumps(facts, indent=2))
+        else:
+            _print_converted(facts)
+        return
     with outside_paths_allowed(allow_outside_paths):
         facts = scene_facts(load_scene(scene, gaussians=gaussians, surface=surface))
     if json_out:
@@ -71,6 +82,32 @@ def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = Non
             value = "\n".join(f"{k}: {v}" for k, v in value.items())
         table.add_row(key, "—" if value is None else str(value))
     Console().print(table)
+
+
+def _print_converted(facts: dict) -> None:
+    """``phirie info`` of a converted folder: a summary table, then one row per object."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    table = Table(title=f"phirie info: {facts['root']} (converted)", show_header=False)
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    for key in ("scene", "frame", "outcome", "background", "files", "timings_s"):
+        value = facts.get(key)
+        if isinstance(value, dict):
+            value = "\n".join(f"{k}: {v}" for k, v in value.items())
+        elif isinstance(value, list):
+            value = "\n".join(map(str, value))
+        table.add_row(key, "—" if value in (None, "") else str(value))
+    console.print(table)
+    objects = Table(title="objects")
+    for column in ("id", "status", "candidate", "drop test", "mass (kg)", "friction", "parts", "reason"):
+        objects.add_column(column)
+    for row in facts["objects"]:
+        objects.add_row(*("—" if row[k] is None else str(row[k]) for k in
+                          ("id", "status", "candidate", "drop_test", "mass", "friction", "parts", "reason")))
+    console.print(objects)
 
 
 def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
@@ -251,6 +288,8 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     _print_background(manifest)
     _print_outcome(manifest)
     _print_timings(manifest)
+    if (manifest.get("report") or {}).get("path"):
+        print(f"report: {out / manifest['report']['path']}")
 
 
 def _with_observe_width(config: ObserveConfig, observe_width: int | None) -> ObserveConfig:
@@ -263,28 +302,38 @@ def _with_observe_width(config: ObserveConfig, observe_width: int | None) -> Obs
 
 def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians, surface, frame: FrameConfig,
                 stages: tuple[str, ...] | None, allow_outside_paths: bool) -> dict:
-    """``run_convert`` with a spinner on a terminal, else one line per stage as it starts."""
+    """``run_convert`` showing its progress (``progress.display_for``): bars on a terminal, else a
+    line as each stage and long step starts and ends, with elapsed times. After a whole conversion,
+    ``report.html`` (``config.report``; a failure to write it is one line, not the run's failure)."""
     import time
 
-    from rich.console import Console
-
     from phirie_jax.pipeline import run_convert
+    from phirie_jax.progress import display_for, showing, task
 
     options = dict(masks=masks, gaussians=gaussians, surface=surface, frame=frame, stages=stages,
                    allow_outside_paths=allow_outside_paths)
-    console = Console()
-    if console.is_terminal:
-        with console.status("converting") as status:
-            return run_convert(scene, out, config, progress=lambda stage: status.update(f"converting: {stage}"),
-                               **options)
     start = time.perf_counter()
-
-    def line(stage: str) -> None:
-        print(f"phirie: {stage} (at {time.perf_counter() - start:.0f} s)", flush=True)
-
-    manifest = run_convert(scene, out, config, progress=line, **options)
+    with showing(display_for()):
+        manifest = run_convert(scene, out, config, **options)
+        if stages is None and config.report.enabled and not manifest.get("failed_stage"):
+            with task("report"):
+                manifest = _write_report(out, config.report) or manifest
     print(f"phirie: done in {time.perf_counter() - start:.0f} s", flush=True)
     return manifest
+
+
+def _write_report(out: Path, config, video: Path | None = None, frames=()) -> dict | None:
+    """Write ``OUT/report.html``; returns the manifest, or None (and says why) when it failed."""
+    from phirie_jax import layout
+    from phirie_jax.manifest import Manifest
+    from phirie_jax.report.page import write_report
+
+    try:
+        write_report(out, config, video=video, frames=frames)
+    except Exception as err:  # noqa: BLE001 — the conversion stands; its report is a view of it
+        print(f"phirie: {out / layout.REPORT} not written: {type(err).__name__}: {err}", file=sys.stderr, flush=True)
+        return None
+    return Manifest.load_or_create(out).data
 
 
 def _print_frame(manifest: dict) -> None:
@@ -498,12 +547,27 @@ def _options_checked(command):
     return checked
 
 
+def version() -> str:
+    """The installed distribution's version."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as installed
+
+    try:
+        return installed("phirie_jax")
+    except PackageNotFoundError:
+        return "unknown (not installed: pip install -e .)"
+
+
 def main(argv: list[str] | None = None) -> int:
+    if (sys.argv[1:] if argv is None else argv)[:1] in (["--version"], ["-V"]):
+        print(f"phirie {version()}")
+        return 0
     try:
         with deferred_checks():
             tyro.extras.subcommand_cli_from_dict(
                 {name: _options_checked(command) for name, command in COMMANDS.items()}, prog="phirie", args=argv,
-                description="Turn a 3D Gaussian Splatting capture into an interactive simulation scene.",
+                description="Turn a 3D Gaussian Splatting capture into an interactive simulation scene "
+                            "(phirie --version: the version).",
             )
     except (SceneInputError, OptionError, ConfigValueError) as err:
         print(f"phirie: error: {err}", file=sys.stderr)

@@ -7,7 +7,8 @@
 4. put the Franka Panda beside the table (when ``gymnasium-robotics`` is installed): pick and
    place every object the gripper fits and the arm reaches, and film the first from a scene
    camera and the wrist camera (``ROBOT_FPS``, ``ROBOT_WIDTH``: a short, small clip);
-5. print what was converted, how well (against the ground truth) and how long each stage took.
+5. print what was converted, how well (against the ground truth) and how long each stage took,
+   and write ``report.html`` beside the converted scene (its rollout included).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.progress import task
 from phirie_jax.synthetic.scene import write_png
 
 PREVIEW_VIEWS = 4
@@ -86,22 +88,34 @@ def background_scores(truth, convert_dir: Path, manifest: dict, camera, backgrou
 
 
 def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
+    """Steps 1–5 of the module docstring, their progress shown (``progress.display_for``); ends by
+    printing the path of the converted folder's ``report.html``."""
     from rich.console import Console
 
+    from phirie_jax.progress import display_for, showing
+
+    console = Console()
+    with showing(display_for(console)):
+        result = _run(out, preset, seed, console)
+    console.print(f"report: {result['report']}")
+    return result
+
+
+def _run(out: Path, preset: str, seed: int, console) -> dict:
     from phirie_jax.interact.environment import Environment
     from phirie_jax.interact.rollout import RolloutConfig, rollout, write_video
     from phirie_jax.pipeline import run_convert
     from phirie_jax.render import render
+    from phirie_jax.report.page import write_report
     from phirie_jax.synthetic import synthesize
     from phirie_jax.synthetic.truth import background_truth
 
-    console = Console()
     timings: dict[str, float] = {}
     scene_dir, convert_dir, media = out / "scene", out / "convert", out / "media"
 
-    def timed(name, fn):
+    def timed(name, fn, total=None):
         t0 = time.perf_counter()
-        with console.status(name) as status:
+        with task(name, total) as status:
             result = fn(status)
         timings[name] = time.perf_counter() - t0
         return result
@@ -116,9 +130,11 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
     truth = background_truth(scene_dir)  # the capture, its labels and the scene without objects
     captured = np.asarray(render(truth.capture.to_kernel(), env.camera(rollout_config.camera),
                                  background=np.asarray(bg, np.float32)).rgb)
-    result = timed("rollout", lambda s: rollout(
-        env, rollout_config, on_frame=lambda i: s.update(f"rollout frame {i + 1}/{rollout_config.frames}")))
+    result = timed("rollout", lambda s: rollout(env, rollout_config, on_frame=lambda i: s()),
+                   total=rollout_config.frames)
     write_video(media / "rollout.mp4", result["frames"], rollout_config.fps)
+    report = timed("report", lambda s: write_report(convert_dir, video=media / "rollout.mp4",
+                                                    frames=result["frames"]))
     write_png(media / "before.png", captured)
     write_png(media / "after_conversion.png", result["frames"][0] / 255.0)
     write_png(media / "after_shot.png", result["frames"][-1] / 255.0)
@@ -134,7 +150,7 @@ def run_demo(out: Path, preset: str = "default", seed: int = 0) -> dict:
         table.add_row("robot", robot["skipped"])
     console.print(table)
     return {"timings": timings, "previews": previews, "manifest": manifest, "background_scores": scores,
-            "robot": robot}
+            "robot": robot, "report": report}
 
 
 def robot_rollouts(convert_dir: Path, media: Path, background, status) -> dict:
@@ -173,7 +189,6 @@ def _robot_row(row: dict) -> str:
         return row.get("reason", "not tried")
     return (f"{'success' if row['success'] else 'missed'}: {100 * row['distance_m']:.1f} cm from the goal, "
             f"tilted {row['tilt_deg']:.1f}°")
-
 
 
 def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: Path, manifest: dict, result: dict,

@@ -1,4 +1,6 @@
-"""What a scene folder holds, as a dict of facts (``phirie info``)."""
+"""What a scene folder, or a converted one, holds, as a dict of facts (``phirie info``); the
+readers of a converted folder's object records that the command line, the viewer and the report
+share (``candidate_name``, ``chosen_scores``, ``drop_verdict``, ``outcome_lines``)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax import layout
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.gaussian_checks import degenerate_counts
 from phirie_jax.io.ply import ply_element_counts, read_gaussian_ply
@@ -97,6 +100,30 @@ def scene_facts(scene: SceneInput) -> dict:
     return facts
 
 
+def candidate_name(entry: dict) -> str:
+    """The chosen candidate's name (the manifest holds a name, or a record with one)."""
+    candidate = entry.get("candidate")
+    return str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—")
+
+
+def chosen_scores(entry: dict) -> dict:
+    """The scores of the chosen candidate among those tried (empty when not recorded)."""
+    name = candidate_name(entry)
+    return next((c.get("scores") or {} for c in entry.get("candidates") or [] if c.get("name") == name), {})
+
+
+def drop_verdict(entry: dict) -> str:
+    """The drop test in words: stable / unstable with the drift, or why it was not run."""
+    drop = entry.get("drop_test") or {}
+    if not drop:
+        return "not run"
+    if drop.get("error"):
+        return f"not measured ({drop['error']})"
+    drift = drop.get("drift_m")
+    verdict = "stable" if drop.get("stable") else "unstable"
+    return verdict + (f", drift {100 * drift:.1f} cm" if drift is not None else "")
+
+
 def _reasons(entries: list[dict]) -> str:
     counts = Counter(str(e.get("reason") or "no reason recorded") for e in entries)
     return "; ".join(f"{reason} (×{n})" if n > 1 else reason for reason, n in counts.most_common(4))
@@ -117,6 +144,9 @@ def outcome_lines(manifest: dict) -> list[str]:
                                  if observe.get("rejected_proposals") else "",
                                  f"{len(views)} views gave no masks: {_reasons(views)}" if views else "") if text]
         lines.append("no object instance found: " + ("; ".join(why) or "no mask labels any pixel"))
+    usd = (manifest.get("physics") or {}).get("usd") or {}
+    if usd.get("reason"):
+        lines.append(f"scene.usda not written: {usd['reason']}")
     objects = manifest.get("objects")
     if objects:
         accepted = [o for o in objects if o.get("status") == "accepted"]
@@ -126,3 +156,47 @@ def outcome_lines(manifest: dict) -> list[str]:
             lines.append("no object accepted: " + "; ".join(f"{o['id']}: {o.get('reason') or o.get('status')}"
                                                           for o in objects))
     return lines
+
+
+def is_converted(path: Path) -> bool:
+    """Whether ``path`` is a ``phirie convert`` output folder (it holds ``manifest.json``)."""
+    return Path(path).is_dir() and (Path(path) / layout.MANIFEST).is_file()
+
+
+# What a converted folder holds, in the order shown (``layout`` names them once).
+CONVERTED_FILES = (layout.SCENE_MJCF, layout.SCENE_USD, layout.BACKGROUND, layout.CAMERAS, layout.REPORT)
+
+
+def converted_facts(out_dir: Path) -> dict:
+    """A JSON-ready summary of a converted folder: scene, frame, outcome, each object's record,
+    the background, the files written (bytes; None when absent) and the stages' seconds."""
+    from phirie_jax.manifest import Manifest
+
+    out_dir = Path(out_dir)
+    manifest = Manifest.load_or_create(out_dir)
+    data = manifest.data
+    frame = data.get("frame") or {}
+    background = data.get("background") or {}
+    objects = [{"id": o["id"], "status": o.get("status"), "candidate": candidate_name(o),
+                "drop_test": drop_verdict(o), "mass": o.get("mass"), "friction": o.get("friction"),
+                "parts": len(o.get("collision") or []) or None,
+                "reason": None if o.get("status") == "accepted" else o.get("reason")}
+               for o in data.get("objects") or []]
+    files = {name: (out_dir / name).stat().st_size if (out_dir / name).is_file() else None
+             for name in CONVERTED_FILES}
+    usd = (data.get("physics") or {}).get("usd") or {}
+    return {
+        "root": str(out_dir),
+        "scene": (data.get("scene") or {}).get("path"),
+        "frame": None if not frame else (f"{frame.get('scale', 1.0):.6g} m per capture unit "
+                                         f"({frame.get('scale_source')}); up from {frame.get('up_source')}"),
+        "outcome": outcome_lines(data),
+        "objects": objects,
+        "background": None if not background else (
+            f"{background.get('source_gaussians')} → {background.get('gaussians')} Gaussians "
+            f"({background.get('removed')} removed, {background.get('filled')} filled)"),
+        "files": {name: size if size is not None else ("not written: " + usd["reason"]
+                                                        if name == layout.SCENE_USD and usd.get("reason") else None)
+                  for name, size in files.items()},
+        "timings_s": {k: round(float(v), 1) for k, v in (data.get("timings") or {}).items() if "." not in k},
+    }

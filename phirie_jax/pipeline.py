@@ -41,6 +41,8 @@ from phirie_jax.io.transforms_json import write_transforms_json
 from phirie_jax.manifest import Manifest
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.masks import check_mask_source
+from phirie_jax.progress import task
+from phirie_jax.report.config import ReportConfig
 from phirie_jax.types import SceneInput
 
 
@@ -55,12 +57,14 @@ class ConvertConfig:
             settling check while ranking).
         background: removal of the objects' source Gaussians, inpainting targets and the
             plane-disk fill of what they uncover.
+        report: ``report.html``, written by ``phirie convert`` after the stages.
     """
 
     observe: ObserveConfig = ObserveConfig()
     objects: ObjectsConfig = ObjectsConfig()
     physics: PhysicsConfig = PhysicsConfig()
     background: BackgroundConfig = BackgroundConfig()
+    report: ReportConfig = ReportConfig()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -253,8 +257,9 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
                 stages: tuple[str, ...] | None = None, allow_outside_paths: bool = False) -> dict:
     """Run the stages of ``STAGES`` (all, or those named in ``stages``; the frame stage always
     runs) on ``scene_dir``; returns the final manifest (a dict). ``progress(stage)`` is called
-    as each stage starts. ``allow_outside_paths``: cameras may name images outside the scene
-    folder (refused by default)."""
+    as each stage starts (and each is a ``progress.task``: shown by a display the caller
+    installed). ``allow_outside_paths``: cameras may name images outside the scene folder
+    (refused by default)."""
     start = time.perf_counter()
     frame.checked()
     out_dir = Path(out_dir)
@@ -273,7 +278,8 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
             if progress is not None:
                 progress(name)
             try:
-                run = stage(run)
+                with task(name):
+                    run = stage(run)
             except SceneInputError as err:
                 if created is not None:  # an input error leaves no partial output behind
                     shutil.rmtree(created, ignore_errors=True)

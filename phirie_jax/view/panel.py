@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from phirie_jax.info import candidate_name, chosen_scores, drop_verdict
+
 
 def _number(value, digits: int = 3) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
@@ -11,30 +13,6 @@ def _number(value, digits: int = 3) -> str:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return str(value)
     return f"{value:.{digits}g}"
-
-
-def candidate_name(entry: dict) -> str:
-    """The chosen candidate's name (the manifest holds a name, or a record with one)."""
-    candidate = entry.get("candidate")
-    return str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—")
-
-
-def chosen_scores(entry: dict) -> dict:
-    """The scores of the chosen candidate among those tried (empty when not recorded)."""
-    name = candidate_name(entry)
-    return next((c.get("scores") or {} for c in entry.get("candidates") or [] if c.get("name") == name), {})
-
-
-def drop_verdict(entry: dict) -> str:
-    """The drop test in words: stable / unstable with the drift, or why it was not run."""
-    drop = entry.get("drop_test") or {}
-    if not drop:
-        return "not run"
-    if drop.get("error"):
-        return f"not measured ({drop['error']})"
-    drift = drop.get("drift_m")
-    verdict = "stable" if drop.get("stable") else "unstable"
-    return verdict + (f", drift {100 * drift:.1f} cm" if drift is not None else "")
 
 
 def object_markdown(entry: dict) -> str:

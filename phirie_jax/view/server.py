@@ -31,6 +31,7 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.interact.environment import Environment
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.manifest import Manifest
+from phirie_jax.report.renders import source_gaussians
 from phirie_jax.view.config import ViewConfig
 from phirie_jax.view.live import LiveScene
 from phirie_jax.view.panel import object_markdown
@@ -55,24 +56,6 @@ def _viser():
     except ImportError:
         raise SceneInputError(None, "viewer", MISSING_VISER) from None
     return viser
-
-
-def source_gaussians(out_dir: Path, manifest: Manifest) -> SplatArrays | None:
-    """The capture's Gaussians in the world frame (the manifest's ``scene.gaussians`` moved by
-    ``frame.capture_to_world``), degenerate ones dropped; None when the file is gone."""
-    from phirie_jax.frame.resolve import world_gaussians
-    from phirie_jax.io.gaussian_checks import degenerate_mask
-    from phirie_jax.io.ply import read_gaussian_ply
-
-    path = (manifest.get("scene") or {}).get("gaussians")
-    if not path or not Path(path).is_file():
-        return None
-    data = read_gaussian_ply(path, allow_non_finite=True)
-    data = data.subset(np.flatnonzero(~degenerate_mask(data)))
-    to_world = manifest.capture_to_world()
-    if to_world is not None:
-        data = world_gaussians(data, to_world)
-    return splat_arrays(data.to_kernel())
 
 
 class Viewer:
@@ -246,10 +229,11 @@ class Viewer:
 
     def _show_source(self, on: bool) -> None:
         if on and self._source is None:
-            self._source = source_gaussians(self.out_dir, self.manifest)
-            if self._source is None:
+            source = source_gaussians(self.out_dir, self.manifest)
+            if source is None:  # the capture's PLY has moved since the conversion
                 self.toggles["Source capture (before)"].disabled = True
                 return
+            self._source = splat_arrays(source.to_kernel())
             self._nodes["source"] = self._splats("/source", self._source, visible=False)
         if "source" in self._nodes:
             self._nodes["source"].visible = on

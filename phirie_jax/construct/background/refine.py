@@ -23,6 +23,7 @@ from kernels.raster import RasterConfig
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.targets import Frame
 from phirie_jax.geometry import sigmoid
+from phirie_jax.progress import task
 from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two, pad_gaussians
 from phirie_jax.types import GaussianSplatData
 
@@ -154,21 +155,23 @@ def _fit(params, geom, stacked, lrs, raster: RasterConfig, statics: dict, iterat
     steps = retries = 0
     first_s = None
     t0 = time.perf_counter()
-    while True:
-        new_params, new_state, loss, (per_frame, overflow, needed) = _step(params, opt_state, geom, stacked, lrs,
-                                                                           config=raster, **statics)
-        if bool(overflow):  # this step's gradient is incomplete: grow, repeat it
-            raster = _grow(raster, int(needed))
-            retries += 1
-            continue
-        if first_s is None:
-            first_s = time.perf_counter() - t0
-        losses.append(float(loss))
-        frame_losses.append(np.asarray(per_frame)[:num_frames])
-        if steps == iterations:
-            break
-        params, opt_state = new_params, new_state
-        steps += 1
+    with task("fill refinement (Adam steps)", iterations) as advance:
+        while True:
+            new_params, new_state, loss, (per_frame, overflow, needed) = _step(params, opt_state, geom, stacked, lrs,
+                                                                               config=raster, **statics)
+            if bool(overflow):  # this step's gradient is incomplete: grow, repeat it
+                raster = _grow(raster, int(needed))
+                retries += 1
+                continue
+            if first_s is None:
+                first_s = time.perf_counter() - t0
+            losses.append(float(loss))
+            frame_losses.append(np.asarray(per_frame)[:num_frames])
+            if steps == iterations:
+                break
+            params, opt_state = new_params, new_state
+            steps += 1
+            advance()
     return _Fit(params, raster, losses, frame_losses, steps, retries, first_s, time.perf_counter() - t0 - first_s)
 
 

@@ -41,6 +41,7 @@ from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
 from phirie_jax.io.mesh import load_trimesh, read_mesh
 from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.progress import task
 
 SETTLE_SECONDS = 2.0
 
@@ -137,20 +138,31 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     builds in this one (unprotected: for debugging). ``build``: what runs per entry (a top-level
     function; default ``_build_outcome``). Workers never outlive this process (``_worker_pool``).
     """
+    args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
+    build = _build_outcome if build is None else build
+    with task("collision (CoACD per object)", len(args)) as advance:
+        if config.workers == 1 or not args:
+            return [_advanced(build(*a), advance) for a in args]
+        return _build_in_workers(build, args, config, advance)
+
+
+def _advanced(outcome: dict, advance) -> dict:
+    advance()
+    return outcome
+
+
+def _build_in_workers(build, args: list[tuple], config: PhysicsConfig, advance) -> list[dict]:
+    """``build(*a)`` of every ``a`` in a pool (``build_objects``), in order; ``advance()`` per object."""
     import os
     from concurrent.futures.process import BrokenProcessPool
 
-    args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
-    build = _build_outcome if build is None else build
-    if config.workers == 1 or not args:
-        return [build(*a) for a in args]
     workers = min(len(args), config.workers or os.cpu_count() or 1)
     outcomes: list[dict | None] = [None] * len(args)
     with _worker_pool(workers) as pool, _terminated_on_interrupt(pool):
         futures = [pool.submit(build, *a) for a in args]
         for k, future in enumerate(futures):
             try:
-                outcomes[k] = future.result()
+                outcomes[k] = _advanced(future.result(), advance)
             except BrokenProcessPool:
                 pass
     for k, outcome in enumerate(outcomes):
@@ -160,6 +172,7 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
                     outcomes[k] = alone.submit(build, *args[k]).result()
                 except BrokenProcessPool:
                     outcomes[k] = {"reason": "the collision process died (CoACD crashed on this mesh)"}
+            advance()
     return outcomes
 
 

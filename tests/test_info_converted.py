@@ -1,0 +1,48 @@
+"""``phirie info OUT_DIR`` on a converted folder, ``phirie --version``, and the line that says how
+to get scene.usda when pxr is missing."""
+
+from __future__ import annotations
+
+import json
+from importlib.metadata import version
+
+import pytest
+
+from phirie_jax import layout
+from phirie_jax.cli import main
+from phirie_jax.info import outcome_lines
+from tests.fixtures.box_scene import BOXES, converted_folder
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return converted_folder(tmp_path_factory.mktemp("info"))
+
+
+def test_info_summarises_a_converted_folder(folder, capsys):
+    assert main(["info", str(folder), "--json"]) == 0
+    facts = json.loads(capsys.readouterr().out)
+    assert facts["root"] == str(folder)
+    assert [o["id"] for o in facts["objects"]] == sorted(BOXES)
+    manifest = json.loads((folder / layout.MANIFEST).read_text())
+    for row, entry in zip(facts["objects"], manifest["objects"]):
+        assert row["status"] == "accepted" and row["candidate"] == "box" and row["parts"] == 1
+        assert row["mass"] == entry["mass"] and row["drop_test"].startswith("stable")
+    assert facts["files"][layout.SCENE_MJCF] == (folder / layout.SCENE_MJCF).stat().st_size
+    assert facts["files"][layout.REPORT] is None            # not written for this folder
+    assert "2 of 2 objects accepted" in facts["outcome"]
+    assert main(["info", str(folder)]) == 0
+    table = capsys.readouterr().out
+    assert "converted" in table and "objects" in table and "box" in table
+
+
+def test_version(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"phirie {version('phirie_jax')}"
+
+
+def test_a_missing_pxr_is_one_line_that_says_how(folder):
+    manifest = json.loads((folder / layout.MANIFEST).read_text())
+    manifest["physics"]["usd"] = {"path": None, "reason": "pxr is not importable (pip install 'phirie_jax[usd]')"}
+    lines = [line for line in outcome_lines(manifest) if "scene.usda" in line]
+    assert lines == ["scene.usda not written: pxr is not importable (pip install 'phirie_jax[usd]')"]
