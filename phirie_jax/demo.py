@@ -23,7 +23,7 @@ from phirie_jax.progress import task
 from phirie_jax.synthetic.scene import write_png
 
 PREVIEW_VIEWS = 4
-ROBOT_FPS = 4.0          # the pick-and-place clip: frames per simulated second ...
+ROBOT_FPS = 2.0          # the pick-and-place clip: frames per simulated second ...
 ROBOT_WIDTH = 160        # ... and the scene camera's width (the wrist camera is 160×120)
 ROBOT_SPACING = 0.01     # m between the robot's Gaussians (a light robot for the CPU demo)
 
