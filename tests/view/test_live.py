@@ -94,3 +94,16 @@ def test_the_panel_says_candidate_checks_drop_test_and_physics(folder):
     rejected = object_markdown({"id": 9, "status": "rejected", "reason": "registration residual too high",
                                 "candidate": None, "drop_test": None})
     assert "rejected" in rejected and "registration residual too high" in rejected and "not run" in rejected
+
+
+def test_without_viser_the_command_says_how_to_get_it(folder, monkeypatch, capsys):
+    import sys
+
+    from phirie_jax.cli import main
+
+    monkeypatch.setitem(sys.modules, "viser", None)  # import viser → ImportError
+    assert main(["view", str(folder), "--port", "0"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("phirie: error:") and "pip install 'phirie_jax[viewer]'" in error
+    assert main(["view", str(folder), "--port", "70000"]) == 2
+    assert "--port 70000: expected in [0, 65535]" in capsys.readouterr().err
