@@ -6,9 +6,10 @@
 Per seed: the ``default`` scene is synthesized (if missing), observed (mask files, scan mesh) and
 its objects constructed with the default configs; then ``run_background`` runs once per variant:
 
-    telea      OpenCV Telea targets, the disks refined (the default)
+    exemplar   exemplar (patch-copy) targets, the disks refined (the default)
+    telea      OpenCV Telea targets, refined
     ns         Navier–Stokes targets, refined
-    init       Telea targets, the disks only initialized from them (no refinement)
+    init       exemplar targets, the disks only initialized from them (no refinement)
 
 and everything is rendered at 320×240 from held-out cameras (``HELD_OUT`` views on rings between
 and above the capture's, never used by any stage), over the scene's background colour:
@@ -16,10 +17,10 @@ and above the capture's, never used by any stage), over the scene's background c
     truth            gt/background.ply ∪ the capture's floaters (the capture's label-0 Gaussians that
                      are not in gt/background.ply): the scene as it should be with the objects gone
     removal only     G0 \\ ∪R_i (the holes left as they are)
-    2D inpaint       removal only, then each held-out image inpainted in 2D (Telea / NS) inside the
+    2D inpaint       removal only, then each held-out image inpainted in 2D (exemplar / Telea / NS) inside the
                      same hole definition as the targets — no 3D fill, no consistency between views
     fill (init)      the ``init`` variant's background.ply
-    fill (telea/ns)  the refined variants' background.ply
+    fill (refined)   the refined variants' background.ply
 
 Uncovered region of a view: pixels where the capture's object Gaussians (gt labels > 0) carry a
 composited weight ≥ ``REGION_WEIGHT``. PSNR and SSIM (11×11 Gaussian window) inside it, PSNR
@@ -62,7 +63,8 @@ HELD_OUT = 12
 VISIBLE_CHANGE = 0.08  # a capture-camera pixel is uncovered where capture and truth differ by this much
 HIDDEN_WEIGHT = 0.5  # a pixel shows the hidden tabletop where its Gaussians carry this much weight in the truth
 # variant → (inpainting method, refinement iterations; None: the default)
-VARIANTS = {"telea": ("telea", None), "ns": ("ns", None), "init": ("telea", 0)}
+VARIANTS = {"exemplar": ("exemplar", None), "telea": ("telea", None), "ns": ("ns", None), "init": ("exemplar", 0)}
+DEFAULT_VARIANT = "exemplar"  # the stage's defaults
 
 
 def _scene(root: Path, seed: int, fit_config=None, candidates: bool = False) -> Path:
@@ -198,7 +200,7 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None, cand
 
     t = background_truth(scene_dir)
     capture, labels, truth, hidden_g = t.capture, t.labels, t.truth, t.hidden
-    out0, b0 = runs["telea"]
+    out0, b0 = runs[DEFAULT_VARIANT]
     result = read_gaussian_ply(out0 / layout.BACKGROUND)
     kept = result.subset(np.arange(result.num - b0["filled"]))
     from scipy.spatial import cKDTree
@@ -233,19 +235,19 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None, cand
         kept_img = np.asarray(kept_r[k].rgb)
         hole = _hole(full[k], kept_r[k], disk_r[k], cfg)
         entries = {"removal only": kept_img}
-        for method in ("telea", "ns"):
+        for method in ("exemplar", "telea", "ns"):
             entries[f"removal + 2D inpaint ({method})"] = inpaint(kept_img, hole, method, cfg.inpaint_radius)
-        entries["fill, initialized only (telea targets)"] = np.asarray(fill_r["init"][k].rgb)
-        entries["fill, refined (telea targets)"] = np.asarray(fill_r["telea"][k].rgb)
-        entries["fill, refined (ns targets)"] = np.asarray(fill_r["ns"][k].rgb)
+        entries["fill, initialized only (exemplar targets)"] = np.asarray(fill_r["init"][k].rgb)
+        for method in ("exemplar", "telea", "ns"):
+            entries[f"fill, refined ({method} targets)"] = np.asarray(fill_r[method][k].rgb)
         for name, img in entries.items():
             rows.setdefault(name, []).append({"view": k, "region_px": int(region.sum()), "hidden_px": int(hidden.sum()),
                                               **_metrics(img, gt, region, hidden)})
     results["views"] = rows
     capture_cams = read_scene_cameras(scene_dir)
     results["uncovered"] = uncovered_region(
-        capture, truth, {"removal only": kept, **{f"fill, refined ({m})": fills[m] for m in ("telea", "ns")},
-                         "fill, initialized only (telea targets)": fills["init"]}, capture_cams, bg)
+        capture, truth, {"removal only": kept, **{f"fill, refined ({m})": fills[m] for m in ("exemplar", "telea", "ns")},
+                         "fill, initialized only (exemplar targets)": fills["init"]}, capture_cams, bg)
     results["summary"] = {name: _mean(vs) for name, vs in rows.items()}
     results["objects_stage_s"] = round(objects_s, 2)
     return results

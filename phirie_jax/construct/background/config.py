@@ -165,8 +165,9 @@ class TargetsConfig:
     """Inpainting targets (``construct.background.targets``).
 
     Attributes:
-        inpaint: "telea" (OpenCV's Telea, the default) or "ns" (Navier–Stokes).
-        inpaint_radius: OpenCV's inpainting neighbourhood, pixels.
+        inpaint: "exemplar" (known patches copied in, continuing the support's texture; ours),
+            "telea" (OpenCV's Telea) or "ns" (Navier–Stokes): diffusion, a smooth blend of the border.
+        inpaint_radius: OpenCV's inpainting neighbourhood, pixels (telea / ns).
         region_weight: a pixel is in an edit's region where the removed Gaussians' composited weight
             reaches this (their rendered alpha in the capture).
         region_dilate_px: the region is grown by this many pixels.
@@ -180,7 +181,7 @@ class TargetsConfig:
         write: write the targets (and masks) under ``background/targets/`` for inspection or editing.
     """
 
-    inpaint: str = "telea"
+    inpaint: str = "exemplar"
     inpaint_radius: int = 5
     region_weight: float = 0.02
     region_dilate_px: int = 2
@@ -191,8 +192,8 @@ class TargetsConfig:
     write: bool = True
 
     def __post_init__(self):
-        if self.inpaint not in ("telea", "ns"):
-            raise ValueError(f"background inpaint {self.inpaint!r} (expected 'telea' or 'ns')")
+        if self.inpaint not in ("exemplar", "telea", "ns"):
+            raise ValueError(f"background inpaint {self.inpaint!r} (expected 'exemplar', 'telea' or 'ns')")
         check_ranges(self, {
             "inpaint_radius": AT_LEAST_ONE, "region_weight": POSITIVE_FRACTION, "region_dilate_px": NON_NEGATIVE,
             "loss_ring_px": NON_NEGATIVE, "explained_alpha": FRACTION, "plane_depth_tolerance": NON_NEGATIVE})

@@ -10,7 +10,7 @@ Reads the capture G0 (the scene folder) and what the earlier stages wrote in ``o
    under it on the scene surface (``plane_source``) — no plane is an *unsupported region*,
    recorded, and that object's hole stays;
 3. inpainting targets: one primary view per object, all edits of a frame in one target
-   (``targets``; OpenCV Telea by default, Navier–Stokes, or an external editor's folder);
+   (``targets``; exemplar patches by default, OpenCV Telea or Navier–Stokes, or an external editor's folder);
 4. new disks on a ``grid`` lattice over the exposed cells plus a margin, coloured from the targets
    where a target sees them and from the neighbouring kept surface elsewhere, then refined — only
    they, the kept Gaussians fixed — against the targets (``refine``, ``kernels.fill``).

@@ -16,8 +16,9 @@ A frame is a crop around all of its objects' regions (``views``). In it, rendere
 - the initial disks: where they are opaque and the kept surface lies behind them (seen through
   the hole), or where the kept render is not opaque, the region is a *hole*.
 
-Target = the kept render with the hole inpainted by OpenCV (Telea or Navier–Stokes, per
-channel in float). Region pixels the kept scene already explains (the tabletop seen behind the
+Target = the kept render with the hole inpainted: by default with known patches of the image
+around it (``exemplar``: the support's texture continues through the hole), or by OpenCV's
+diffusion (Telea or Navier–Stokes, per channel in float). Region pixels the kept scene already explains (the tabletop seen behind the
 object from this side) keep their rendered colour. The loss mask is the region grown by
 ``loss_ring_px`` (inside the image).
 
@@ -44,6 +45,7 @@ from scipy import ndimage
 
 from kernels.sh import rgb_to_sh_dc
 from phirie_jax.construct.background.config import BackgroundConfig, TargetsConfig
+from phirie_jax.construct.background.exemplar import exemplar_inpaint
 from phirie_jax.construct.background.views import (
     Crop,
     CropRenderer,
@@ -57,6 +59,7 @@ from phirie_jax.types import Camera, GaussianSplatData
 
 SHARPNESS_CANDIDATES = 5  # views whose blur is measured for the primary choice
 FILL_ALPHA = 0.5          # the initial disks cover a pixel
+SUPPORT_ALPHA = 0.9       # a pixel shows the support: its slab this opaque, the front this clear
 DEPTH_MARGIN_SIGMAS = 3.0  # the slab's depth band: the disks' depths ± this many (largest) σ plus one cell
 
 
@@ -150,7 +153,7 @@ class Frame:
     back_rgb: np.ndarray     # (C, C, 3)
     reach: np.ndarray        # (C, C) bool: pixels the frame's own disks can touch
     slab: GaussianSplatData  # kept Gaussians of the disks' depth band touching ``reach``, colour baked (SH DC)
-    source: str              # "telea" | "ns" | "external"
+    source: str              # "exemplar" | "telea" | "ns" | "external"
 
     def record(self, cameras: tuple[Camera, ...]) -> dict:
         return {"view": self.view, "name": cameras[self.view].name, "objects": self.objects,
@@ -159,10 +162,14 @@ class Frame:
                 "loss_px": int((self.mask > 0).sum()), "slab_gaussians": self.slab.num, "source": self.source}
 
 
-def inpaint(image: np.ndarray, hole: np.ndarray, method: str, radius: int) -> np.ndarray:
-    """(H, W, 3) float image in [0, 1] with the ``hole`` (H, W) bool pixels filled by OpenCV.
+def inpaint(image: np.ndarray, hole: np.ndarray, method: str, radius: int, source: np.ndarray | None = None
+            ) -> np.ndarray:
+    """(H, W, 3) float image in [0, 1] with the ``hole`` (H, W) bool pixels filled: "exemplar"
+    copies known patches (``exemplar``: the support's texture continues; patches come from the
+    ``source`` (H, W) bool pixels, default every known one; what no patch can reach is diffused
+    by Telea), "telea" / "ns" diffuse the border inwards (OpenCV; ``radius`` is their neighbourhood).
 
-    Per channel at 16 bits: OpenCV's Telea returns garbage for float32 input (measured with
+    OpenCV's methods run per channel at 16 bits: OpenCV's Telea returns garbage for float32 input (measured with
     OpenCV 4.x: values far outside the input range), and 8 bits would quantize the target.
     Pixels outside the hole are returned unchanged.
     """
@@ -171,6 +178,11 @@ def inpaint(image: np.ndarray, hole: np.ndarray, method: str, radius: int) -> np
     image = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
     if not hole.any():
         return image.copy()
+    if method == "exemplar":
+        image, hole = exemplar_inpaint(image, hole, source)
+        if not hole.any():
+            return image
+        method = "telea"
     flag = cv2.INPAINT_TELEA if method == "telea" else cv2.INPAINT_NS
     m = hole.astype(np.uint8) * 255
     channels = [cv2.inpaint(np.round(image[..., c] * 65535).astype(np.uint16), m, radius, flag)
@@ -358,7 +370,10 @@ def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: Gaussia
             mask = crop.sample(mask_full, camera_full.width, camera_full.height).astype(bool) & crop.inside
         source = "external"
     else:
-        target = inpaint(kept.rgb.astype(np.float32), hole, config.targets.inpaint, config.targets.inpaint_radius)
+        # the support as the exemplar's source: its slab opaque, nothing of the kept scene in front
+        support = (np.asarray(r_slab.alpha) >= SUPPORT_ALPHA) & (kept.front_trans >= SUPPORT_ALPHA) & crop.inside
+        target = inpaint(kept.rgb.astype(np.float32), hole, config.targets.inpaint, config.targets.inpaint_radius,
+                         support)
         source = config.targets.inpaint
     own_here = all_disks.subset(np.flatnonzero(own))
     reach = disk_reach(own_here, crop, fill.max_disk_sigma * fill.grid, fill.grid) if own_here.num \

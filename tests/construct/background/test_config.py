@@ -18,7 +18,7 @@ from phirie_jax.construct.background.config import (
 def test_paper_defaults():
     c = BackgroundConfig()
     assert (c.removal.obs_radius, c.removal.asset_radius, c.removal.mask_votes) == (0.03, 0.024, 2)
-    assert c.fill.grid == 0.005 and c.targets.inpaint == "telea" and c.refine.dssim_weight == 0.2
+    assert c.fill.grid == 0.005 and c.targets.inpaint == "exemplar" and c.refine.dssim_weight == 0.2
 
 
 @pytest.mark.parametrize("make, message", [
