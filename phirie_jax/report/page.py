@@ -153,7 +153,8 @@ def _rollout(video: str | None, frames: list[np.ndarray]) -> str:
         return ('<p class="muted">no rollout yet: <code>phirie simulate OUT_DIR</code> renders one (and adds it '
                 "here)</p>")
     strip = "".join(_img(f, "frame", 0.5 if f.shape[1] > 200 else 1.0) for f in frames)
-    link = f'<p><a href="{_e(video)}">{_e(video)}</a></p><video controls src="{_e(video)}"></video>' if video else ""
+    # linked, not embedded: OpenCV writes MPEG-4 part 2 (mp4v), which browsers' players mostly refuse
+    link = f'<p>video: <a href="{_e(video)}">{_e(video)}</a></p>' if video else ""
     return f'<div class="strip">{strip}</div>{link}'
 
 
