@@ -148,6 +148,16 @@ class Raycaster:
         near = self._scene.compute_distance(query).numpy() <= radius
         return near | (self._scene.compute_occupancy(query, nsamples=3).numpy() > 0.5)
 
+    def deep_inside(self, points: np.ndarray, depth: float) -> np.ndarray:
+        """(N,) bool: the (N, 3) points inside the (closed) surface and more than ``depth`` from it."""
+        import open3d as o3d
+
+        if len(points) == 0:
+            return np.zeros(0, bool)
+        query = o3d.core.Tensor(np.asarray(points, np.float32))
+        far = self._scene.compute_distance(query).numpy() > depth
+        return far & (self._scene.compute_occupancy(query, nsamples=3).numpy() > 0.5)
+
     def seen_through(self, points: np.ndarray, camera: Camera, tolerance: float) -> np.ndarray:
         """(N,) bool: the camera's ray through each (N, 3) point meets the surface more than
         ``tolerance`` beyond it, i.e. the camera saw past the point (it is free space)."""

@@ -36,7 +36,7 @@ TILE_PX = Range(16, bound="one 16-pixel tile")  # the smallest crop the tiled ra
 
 @dataclasses.dataclass(frozen=True)
 class RemovalConfig:
-    """Removal, R_i = R_obs ∪ R_asset ∪ R_mask (``construct.background.removal``).
+    """Removal, R_i = R_obs ∪ R_asset ∪ R_mask ∪ R_reach (``construct.background.removal``).
 
     Attributes:
         obs_radius: Gaussians within this of the observed surface Q_i (paper: 3 cm).
@@ -47,6 +47,10 @@ class RemovalConfig:
         mask_views: ours — the instance's largest masks consulted (each is one crop render).
         occlusion_tolerance: ours — a centre more than this behind the depth rendered at its pixel is
             occluded in that view and does not vote (the paper's code has no occlusion test; notes).
+        reach_sigmas / reach_depth: ours — R_reach: a Gaussian whose longest axis, ``reach_sigmas`` σ
+            from its centre, ends more than ``reach_depth`` inside the placed asset (an optimizer's
+            needle across the object/support contact, its centre beyond the radii) is removed too:
+            kept, its hidden half would show as a streak once the object moves.
         statuses: objects with these statuses are removed; the others stay in the background.
     """
 
@@ -56,12 +60,15 @@ class RemovalConfig:
     bounds_margin: float = 0.02
     mask_views: int = 8
     occlusion_tolerance: float = 0.01
+    reach_sigmas: float = 2.0
+    reach_depth: float = 0.005
     statuses: tuple[str, ...] = ("accepted",)
 
     def __post_init__(self):
         check_ranges(self, {
             "obs_radius": NON_NEGATIVE, "asset_radius": NON_NEGATIVE, "mask_votes": AT_LEAST_ONE,
-            "bounds_margin": NON_NEGATIVE, "mask_views": AT_LEAST_ONE, "occlusion_tolerance": NON_NEGATIVE})
+            "bounds_margin": NON_NEGATIVE, "mask_views": AT_LEAST_ONE, "occlusion_tolerance": NON_NEGATIVE,
+            "reach_sigmas": NON_NEGATIVE, "reach_depth": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)

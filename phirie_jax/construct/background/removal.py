@@ -1,4 +1,4 @@
-"""Source-Gaussian removal coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask.
+"""Source-Gaussian removal coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask ∪ R_reach.
 
 For each object the object stage made (status in ``RemovalConfig.statuses``):
 
@@ -16,6 +16,11 @@ For each object the object stage made (status in ``RemovalConfig.statuses``):
   the table behind an object, inside its bounds, was voted away). The depth is rendered from the
   Gaussians inside the expanded bounds only: a mask pixel is the *first* hit's label, so what
   is in front of the instance there is the instance itself, which lies inside its bounds.
+
+- R_reach (ours): the remaining Gaussians of the expanded bounds whose longest axis, 2 σ either
+  side of the centre, ends more than 5 mm inside the placed asset: optimizer-shaped needles that
+  cross the object/support contact with their centre on the support, hidden in the capture where
+  they enter the object and a streak on the support once it moves.
 
 Objects the object stage rejected or failed are not removed (they have no body; their
 Gaussians stay in the background) and are recorded as skipped.
@@ -97,6 +102,28 @@ def near_surface(means: np.ndarray, vertices: np.ndarray, faces: np.ndarray, rad
     if len(idx) == 0 or len(faces) == 0:
         return np.zeros(0, np.int64)
     return idx[Raycaster(vertices, faces).within(means[idx], radius)]
+
+
+def reaching_into(data: GaussianSplatData, candidates: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                  sigmas: float, depth: float) -> np.ndarray:
+    """Indices among ``candidates`` (K,) whose longest axis, ``sigmas`` σ either side of the centre,
+    ends more than ``depth`` inside the closed mesh (R_reach; ``RemovalConfig.reach_sigmas``)."""
+    from scipy.spatial.transform import Rotation
+
+    from phirie_jax.observe.raycast import Raycaster
+
+    if len(candidates) == 0 or len(faces) == 0:
+        return np.zeros(0, np.int64)
+    scales = np.exp(data.log_scales[candidates].astype(np.float64))
+    longest = np.argmax(scales, axis=1)
+    quats = data.quats[candidates].astype(np.float64)
+    norms = np.linalg.norm(quats, axis=1, keepdims=True)
+    rot = Rotation.from_quat(quats / np.maximum(norms, 1e-12), scalar_first=True).as_matrix()
+    axis = rot[np.arange(len(candidates)), :, longest] * (sigmas * scales[np.arange(len(candidates)), longest])[:, None]
+    centres = data.means[candidates].astype(np.float64)
+    caster = Raycaster(vertices, faces)
+    ends = caster.deep_inside(np.concatenate([centres + axis, centres - axis]), depth).reshape(2, -1)
+    return candidates[ends.any(axis=0)]
 
 
 def read_mask(path: Path) -> np.ndarray:
@@ -211,7 +238,13 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
         r_asset = (near_surface(means, o.mesh[0], o.mesh[1], config.removal.asset_radius)
                    if o.mesh is not None else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
+        r_reach = np.zeros(0, np.int64)
+        if o.mesh is not None and config.removal.reach_sigmas > 0:
+            rest = np.setdiff1d(_in_box(means, o.bounds(config.removal.bounds_margin)), union, assume_unique=True)
+            r_reach = reaching_into(data, rest, o.mesh[0], o.mesh[1], config.removal.reach_sigmas,
+                                    config.removal.reach_depth)
+            union = np.union1d(union, r_reach)
         sets.append(union)
-        records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask),
+        records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask), "reach": len(r_reach),
                         "union": len(union), "asset_surface": o.mesh is not None, "mask_pass": mask_record})
     return sets, records

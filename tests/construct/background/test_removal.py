@@ -19,3 +19,40 @@ def test_near_or_inside_the_asset_and_nothing_beyond():
     means = np.concatenate([inside, shell, outside, far])
     taken = near_surface(means, box.vertices, box.faces, radius=0.024)
     np.testing.assert_array_equal(taken, np.arange(250))
+
+
+def _needles(centres: np.ndarray, axes: np.ndarray, long_sigma: float, short_sigma: float = 0.001):
+    """Gaussians elongated along the unit ``axes`` (N, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    from phirie_jax.types import GaussianSplatData
+
+    n = len(centres)
+    rot = np.stack([Rotation.align_vectors([a], [[1.0, 0, 0]])[0].as_matrix() for a in axes])
+    quats = Rotation.from_matrix(rot).as_quat(scalar_first=True) * 3.0   # stored unnormalized
+    return GaussianSplatData(means=centres.astype(np.float32), quats=quats.astype(np.float32),
+                             log_scales=np.tile(np.log([long_sigma, short_sigma, short_sigma]), (n, 1)).astype(np.float32),
+                             opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+
+
+def test_needles_reaching_into_the_asset_across_the_contact():
+    """R_reach: a needle centred on the support 4 cm from a box, its 2σ end 1 cm inside the box, is
+    taken; the same needle pointing away, one falling short, and a flat support disk under the box's
+    edge (in the contact plane, never deep inside) stay."""
+    from phirie_jax.construct.background.removal import reaching_into
+
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    box.apply_translation([0, 0, 0.05])                       # standing on z = 0, faces at x = ±0.05
+    into = np.array([1.0, 0, 0.25])
+    into /= np.linalg.norm(into)
+    centres = np.array([[-0.09, 0, 0.0], [-0.09, 0, 0.0], [-0.09, 0, 0.0], [-0.03, 0.0, 0.0]])
+    axes = np.array([into, [-1.0, 0, 0], into, [1.0, 0, 0]])
+    reach_in = (0.05 + 0.01) / 2 / into[0]                     # 2σ ends 1 cm past the face at x = −0.05
+    data = _needles(centres, axes, reach_in)
+    short = _needles(centres[2:3], axes[2:3], 0.02 / 2 / into[0])       # 2σ ends 2 cm short of the face
+    flat = _needles(centres[3:4], axes[3:4], 0.03)
+    from phirie_jax.types import GaussianSplatData
+
+    data = GaussianSplatData.join([data.subset(np.arange(2)), short, flat], like=data)
+    taken = reaching_into(data, np.arange(data.num), box.vertices, box.faces, sigmas=2.0, depth=0.005)
+    np.testing.assert_array_equal(taken, [0])
