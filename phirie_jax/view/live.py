@@ -27,7 +27,7 @@ from phirie_jax.view.config import ViewConfig
 from phirie_jax.view.scene import node_motion
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Grab:
     """A drag in progress: the grabbed point in the body frame and where the pointer is."""
 
@@ -119,7 +119,7 @@ class LiveScene:
         """Move the pointer of a drag in progress to the world point (3,)."""
         with self.lock:
             if object_id in self.grabs:
-                self.grabs[object_id].target = np.asarray(target, np.float64)
+                self.grabs[object_id] = dataclasses.replace(self.grabs[object_id], target=np.asarray(target, np.float64))
 
     def release(self, object_id: int) -> None:
         with self.lock:
