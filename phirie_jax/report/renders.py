@@ -5,9 +5,9 @@
   moved into the world frame by ``frame.capture_to_world``, as every output is);
 * after: the interactive scene at t = 0 (``Environment.gaussians``: the background and every
   object placed by S_i(0), rasterized together);
-* thumbnails: the same scene from the capture camera in which the object's box projects largest
-  (wholly in front of it), its intrinsics cropped and scaled to a square around the object
-  (``crop_camera``).
+* thumbnails: the square around the object cut from the "after" view that shows it largest; an
+  object too small or not wholly in any view is rendered from the capture camera in which its box
+  projects largest, that camera's intrinsics cropped and scaled to the square (``crop_camera``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from phirie_jax.types import Camera, GaussianSplatData
 
 BOX_PERCENTILES = (1.0, 99.0)   # an object's box from its Gaussians, stray ones ignored
 THUMBNAIL_MARGIN = 1.25         # the square is this much wider than the object's projected box
+MIN_CUT_SIDE = 32               # px: an object this large in a view is cut from it, else rendered alone
 
 
 def source_gaussians(out_dir: Path, manifest: Manifest | None = None) -> GaussianSplatData | None:
@@ -55,12 +56,10 @@ def box_corners(points: np.ndarray) -> np.ndarray:
     return np.array([[x, y, z] for x in (low[0], high[0]) for y in (low[1], high[1]) for z in (low[2], high[2])])
 
 
-def crop_camera(camera: Camera, corners: np.ndarray, width: int, height: int) -> tuple[Camera, float] | None:
-    """A ``width`` × ``height`` camera at ``camera``'s pose whose centred square (side
-    min(width, height)) is the square around the projection of ``corners`` (8, 3)
-    (× ``THUMBNAIL_MARGIN``), and that square's side in ``camera``'s pixels; None when a corner is
-    behind the camera or the square leaves its image. With s = side' / side and the square's
-    corner (x0, y0): u' = s (u − x0) + (width − side') / 2 (pixel-centre coordinates kept)."""
+def object_square(camera: Camera, corners: np.ndarray) -> tuple[float, float, float] | None:
+    """(x0, y0, side): the square, in ``camera``'s pixels, around the projection of ``corners``
+    (8, 3) (× ``THUMBNAIL_MARGIN``); None when a corner is behind the camera or the square leaves
+    the image."""
     uv, depth = camera.project(corners)
     if np.any(depth <= 0):
         return None
@@ -69,6 +68,18 @@ def crop_camera(camera: Camera, corners: np.ndarray, width: int, height: int) ->
     x0, y0 = 0.5 * (low + high) - 0.5 * side
     if side <= 0 or x0 < 0 or y0 < 0 or x0 + side > camera.width or y0 + side > camera.height:
         return None
+    return float(x0), float(y0), side
+
+
+def crop_camera(camera: Camera, corners: np.ndarray, width: int, height: int) -> tuple[Camera, float] | None:
+    """A ``width`` × ``height`` camera at ``camera``'s pose whose centred square (side
+    min(width, height)) is ``object_square(camera, corners)``, and that square's side in
+    ``camera``'s pixels; None without a square. With s = side' / side and the square's corner
+    (x0, y0): u' = s (u − x0) + (width − side') / 2 (pixel-centre coordinates kept)."""
+    found = object_square(camera, corners)
+    if found is None:
+        return None
+    x0, y0, side = found
     square = min(width, height)
     scale = square / side
     K = camera.K.copy()
@@ -85,14 +96,23 @@ def thumbnail_camera(cameras: list[Camera], points: np.ndarray, width: int, heig
     return max(crops, key=lambda crop: crop[1])[0] if crops else None
 
 
-def centre_square(image: np.ndarray, size: int) -> np.ndarray:
-    """The centred square of an (H, W, 3) image, resized to ``size`` × ``size`` (area filter)."""
+def cut_square(image: np.ndarray, square: tuple[float, float, float], size: int) -> np.ndarray:
+    """The square (x0, y0, side) of an (H, W, 3) image, resized to ``size`` × ``size`` (area filter
+    when shrinking, linear when enlarging)."""
     import cv2
 
+    x0, y0, side = square
+    left, top, span = int(round(x0)), int(round(y0)), max(1, int(round(side)))
+    patch = image[top:top + span, left:left + span]
+    filter_ = cv2.INTER_AREA if span >= size else cv2.INTER_LINEAR
+    return cv2.resize(patch, (size, size), interpolation=filter_)
+
+
+def centre_square(image: np.ndarray, size: int) -> np.ndarray:
+    """The centred square of an (H, W, 3) image, resized to ``size`` × ``size``."""
     height, width = image.shape[:2]
     side = min(height, width)
-    top, left = (height - side) // 2, (width - side) // 2
-    return cv2.resize(image[top:top + side, left:left + side], (size, size), interpolation=cv2.INTER_AREA)
+    return cut_square(image, ((width - side) / 2, (height - side) / 2, side), size)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,9 +134,10 @@ def render_images(out_dir: Path, views: int, width: int, thumbnail: int, backgro
     """Render the report's images of a converted folder (module docstring). ``source``: the
     capture's Gaussians in the world frame when the caller has them (else read back).
 
-    Every image is rendered at the views' size (a thumbnail is a crop camera of that size, its
-    centred square cut out afterwards) and the smaller Gaussian set is padded with transparent
-    Gaussians to the larger's count, so one compiled program of the renderer serves the page."""
+    Every image is rendered at the views' size (a thumbnail rendered on its own is a crop camera
+    of that size, its centred square cut out afterwards) and the smaller Gaussian set is padded
+    with transparent Gaussians to the larger's count, so one compiled program of the renderer
+    serves the page — the rollout's, when the views are at the cameras' own size."""
     from phirie_jax.interact.environment import Environment
     from phirie_jax.render import pad_gaussians, render
 
@@ -138,7 +159,16 @@ def render_images(out_dir: Path, views: int, width: int, thumbnail: int, backgro
     size = (picks[0].width, picks[0].height) if picks else (thumbnail, thumbnail)
     for o in env.objects:
         rows = slice(offset + o.gaussians.start, offset + o.gaussians.stop)
-        camera = thumbnail_camera(env.cameras, means[rows], *size) if rows.stop > rows.start else None
+        if rows.stop <= rows.start:
+            continue
+        corners = box_corners(means[rows])
+        seen = [(square, image) for square, image in ((object_square(c, corners), a) for c, a in zip(picks, after))
+                if square is not None and square[2] >= MIN_CUT_SIDE]
+        if seen:  # cut from the view that shows it largest: no render of its own
+            square, image = max(seen, key=lambda item: item[0][2])
+            thumbnails[o.id] = cut_square(image, square, thumbnail)
+            continue
+        camera = thumbnail_camera(env.cameras, means[rows], *size)
         if camera is not None:
             thumbnails[o.id] = centre_square(_rgb8(render(scene, camera, background=bg).rgb), thumbnail)
     return ReportImages([c.name for c in picks], before, after, thumbnails)
