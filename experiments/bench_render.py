@@ -306,6 +306,8 @@ def main():
                         help="also time the pure-JAX compositor and compare images and gradients")
     parser.add_argument("--pallas-chunk", type=int, default=PallasSettings.chunk)
     parser.add_argument("--pallas-warps", type=int, default=PallasSettings.num_warps)
+    parser.add_argument("--pallas-prefetch", type=int, choices=[0, 1],
+                        default=int(PallasSettings.prefetch))
     parser.add_argument("--slots", type=int, default=None)
     parser.add_argument("--chunk", type=int, default=32, help="the JAX compositor's chunk")
     parser.add_argument("--no-autodiff", action="store_true")
@@ -324,7 +326,8 @@ def main():
     base = RasterConfig(chunk=args.chunk, slots=args.slots, sequential=args.sequential,
                         compositor=args.compositor,
                         pallas=PallasSettings(chunk=args.pallas_chunk,
-                                              num_warps=args.pallas_warps))
+                                              num_warps=args.pallas_warps,
+                                              prefetch=bool(args.pallas_prefetch)))
     result = {
         "scene": args.scene + ("-tiled" if args.tile_scene else ""),
         "backend": jax.default_backend(), "device": str(jax.devices()[0]),

@@ -21,6 +21,7 @@ backend (the CPU tests compare them with ``kernels.composite``).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from functools import partial
 
 import jax
@@ -39,11 +40,16 @@ class PallasSettings:
     chunk: list entries composited per step (B, a power of two). Larger chunks mean fewer
         loop steps but more wasted work after a tile saturates and more registers.
     num_warps: warps per tile program (Triton).
+    prefetch: load each chunk's list entries two steps and its parameter rows one step
+        before they are composited, so the two dependent memory reads overlap the work of
+        the chunks before (a tile program is alone on its data; at the occupancy these
+        register-heavy programs get, nothing else hides that latency).
     interpret: run the kernels in Pallas' interpreter (any backend; for tests).
     """
 
-    chunk: int = 16
+    chunk: int = 8
     num_warps: int = 4
+    prefetch: bool = True
     interpret: bool = False
 
     def __post_init__(self):
@@ -61,20 +67,61 @@ def _pixel_centres(grid: TileGrid, tile, dtype: jnp.dtype):
     return px.astype(dtype) + 0.5, py.astype(dtype) + 0.5, inside
 
 
-def _load_chunk(ids_ref, params_ref, start, end, first, chunk: int, num_columns: int):
+def _load_ids(ids_ref, start, end, first, chunk: int):
     """Entries [first, first + B) of a tile's list that starts at ``start`` () and whose
-    entries before ``end`` () are wanted (first () int32); ids_ref (C,), params_ref (N, D) refs.
+    entries in [0, end) are wanted (end (), first () int32); ids_ref (C,) ref.
 
-    Returns pos (B,) int32 list positions, valid (B,) bool, ids (B,) int32 (0 where not
-    valid) and the D parameter columns, each (B,) (0 where not valid).
+    Returns pos (B,) int32 list positions, valid (B,) bool and ids (B,) int32 (0 where not
+    valid).
     """
     pos = first + jnp.arange(chunk, dtype=jnp.int32)
-    valid = pos < end
-    slot = jnp.minimum(start + pos, ids_ref.shape[0] - 1)
-    ids = plgpu.load(ids_ref.at[slot], mask=valid, other=0)
-    columns = [plgpu.load(params_ref.at[ids, k], mask=valid, other=0.0)
-               for k in range(num_columns)]
-    return pos, valid, ids, columns
+    valid = (pos >= 0) & (pos < end)
+    slot = jnp.clip(start + pos, 0, ids_ref.shape[0] - 1)
+    return pos, valid, plgpu.load(ids_ref.at[slot], mask=valid, other=0)
+
+
+def _load_rows(params_ref, ids, valid):
+    """The D parameter columns of entries ids (B,) int32, each (B,) (0 where valid (B,) is
+    false); params_ref (N, D) ref."""
+    return [plgpu.load(params_ref.at[ids, k], mask=valid, other=0.0)
+            for k in range(params_ref.shape[1])]
+
+
+class _Chunks:
+    """A tile's chunks in a given order, read ahead when ``prefetch`` is on.
+
+    ``first(j)`` () int32 is the list position of the j-th chunk walked. The state carried
+    through the loop holds the current chunk (pos, valid, ids, rows) and, with prefetching,
+    the next chunk's (pos, valid, ids): its rows are gathered while the current chunk is
+    composited, and the ids after it are read.
+    """
+
+    def __init__(self, ids_ref, params_ref, start, end, chunk: int, first: Callable,
+                 prefetch: bool):
+        """ids_ref (C,) and params_ref (N, D) refs; start () and end () int32 as in ``_load_ids``."""
+        self.ids_ref, self.params_ref = ids_ref, params_ref
+        self.start, self.end, self.chunk = start, end, chunk
+        self.first, self.prefetch = first, prefetch
+
+    def _ids(self, j):
+        """pos, valid, ids of the j-th chunk walked (j () int32)."""
+        return _load_ids(self.ids_ref, self.start, self.end, self.first(j), self.chunk)
+
+    def initial(self) -> tuple:
+        """The loop state before the first chunk."""
+        pos, valid, ids = self._ids(0)
+        current = (pos, valid, ids, _load_rows(self.params_ref, ids, valid))
+        return (current, self._ids(1)) if self.prefetch else (current,)
+
+    def take(self, j, state: tuple):
+        """The j-th chunk (j () int32): (pos, valid, ids, rows) and the state for step j + 1."""
+        if not self.prefetch:
+            pos, valid, ids = self._ids(j)
+            current = (pos, valid, ids, _load_rows(self.params_ref, ids, valid))
+            return current, state
+        current, (pos, valid, ids) = state
+        following = (pos, valid, ids, _load_rows(self.params_ref, ids, valid))
+        return current, (following, self._ids(j + 2))
 
 
 def _chunk_alpha(px, py, columns: list, valid):
@@ -91,8 +138,8 @@ def _chunk_alpha(px, py, columns: list, valid):
     return alpha, gauss, raw, dx, dy
 
 
-def _forward_kernel(grid: TileGrid, chunk: int, start_ref, count_ref, ids_ref, params_ref,
-                    acc_ref, trans_ref, last_ref):
+def _forward_kernel(grid: TileGrid, chunk: int, prefetch: bool, start_ref, count_ref, ids_ref,
+                    params_ref, acc_ref, trans_ref, last_ref):
     """One tile, front to back.  start_ref (NT,) int32; count_ref (NT,) int32; ids_ref (C,) int32;
     params_ref (N, D); out: acc_ref (NT, CH, P), trans_ref (NT, P), last_ref (NT, P) int32
     (1 + list position of each pixel's last contributor, 0 if none)."""
@@ -104,15 +151,15 @@ def _forward_kernel(grid: TileGrid, chunk: int, start_ref, count_ref, ids_ref, p
     px, py, inside = _pixel_centres(grid, tile, dtype)
     npix = grid.tile_pixels
     n_chunks = (count + chunk - 1) // chunk
+    chunks = _Chunks(ids_ref, params_ref, start, count, chunk, lambda i: i * chunk, prefetch)
 
     def cond(carry):
-        i, _, done, _, _ = carry
+        i, _, done, _, _, _ = carry
         return (i < n_chunks) & (jnp.min(done.astype(jnp.int32)) == 0)
 
     def body(carry):
-        i, trans, done, last, acc = carry
-        pos, valid, _, columns = _load_chunk(ids_ref, params_ref, start, count, i * chunk,
-                                             chunk, num_columns)
+        i, trans, done, last, acc, loads = carry
+        (pos, valid, _, columns), loads = chunks.take(i, loads)
         alpha, _, _, _, _ = _chunk_alpha(px, py, columns, valid)
         log_keep = jnp.log1p(-alpha)                      # (P, B), ≥ log(0.01)
         running = jnp.cumsum(log_keep, axis=1)
@@ -127,19 +174,19 @@ def _forward_kernel(grid: TileGrid, chunk: int, start_ref, count_ref, ids_ref, p
         done = done | (trans * jnp.exp(jnp.sum(log_keep, axis=1)) < T_MIN)
         trans = jnp.min(jnp.where(active, incl, trans[:, None]), axis=1)
         last = jnp.maximum(last, jnp.max(jnp.where(active, pos[None, :] + 1, 0), axis=1))
-        return i + 1, trans, done, last, acc
+        return i + 1, trans, done, last, acc, loads
 
     carry = (jnp.int32(0), jnp.ones((npix,), dtype), ~inside, jnp.zeros((npix,), jnp.int32),
-             tuple(jnp.zeros((npix,), dtype) for _ in range(channels)))
-    _, trans, _, last, acc = jax.lax.while_loop(cond, body, carry)
+             tuple(jnp.zeros((npix,), dtype) for _ in range(channels)), chunks.initial())
+    _, trans, _, last, acc, _ = jax.lax.while_loop(cond, body, carry)
     for k in range(channels):
         acc_ref[tile, k, :] = acc[k]
     trans_ref[tile, :] = trans
     last_ref[tile, :] = last
 
 
-def _backward_kernel(grid: TileGrid, chunk: int, interpret: bool, start_ref, ids_ref,
-                     params_ref, trans_ref, last_ref, g_acc_ref, g_trans_ref, zeros_ref,
+def _backward_kernel(grid: TileGrid, chunk: int, prefetch: bool, interpret: bool, start_ref,
+                     ids_ref, params_ref, trans_ref, last_ref, g_acc_ref, g_trans_ref, zeros_ref,
                      grads_ref):
     """One tile, back to front.  start_ref (NT,) int32; ids_ref (C,) int32; params_ref (N, D);
     trans_ref (NT, P) final T; last_ref (NT, P) int32; g_acc_ref (NT, CH, P) and g_trans_ref
@@ -157,11 +204,12 @@ def _backward_kernel(grid: TileGrid, chunk: int, interpret: bool, start_ref, ids
     g_acc = [g_acc_ref[tile, k, :] for k in range(channels)]
     end = jnp.max(last)  # entries after every pixel's last contributor changed nothing
     n_chunks = (end + chunk - 1) // chunk
+    chunks = _Chunks(ids_ref, params_ref, start, end, chunk,
+                     lambda j: (n_chunks - 1 - j) * chunk, prefetch)
 
     def body(j, carry):
-        trans_after, rg_after = carry  # rg: g·(everything behind this chunk), T·g_T included
-        pos, valid, ids, columns = _load_chunk(ids_ref, params_ref, start, end,
-                                               (n_chunks - 1 - j) * chunk, chunk, num_columns)
+        trans_after, rg_after, loads = carry  # rg: g·(everything behind this chunk), T·g_T included
+        (pos, valid, ids, columns), loads = chunks.take(j, loads)
         alpha, gauss, raw, dx, dy = _chunk_alpha(px, py, columns, valid)
         active = (alpha > 0.0) & (pos[None, :] < last[:, None])
         alpha = jnp.where(active, alpha, 0.0)
@@ -194,9 +242,10 @@ def _backward_kernel(grid: TileGrid, chunk: int, interpret: bool, start_ref, ids
         for k, grad in enumerate(grads):
             # The interpreter has no masked atomics; padding entries add 0 to row N anyway.
             plgpu.atomic_add(grads_ref, (rows, k), grad, mask=None if interpret else valid)
-        return trans_before, rg_after + contrib_total
+        return trans_before, rg_after + contrib_total, loads
 
-    jax.lax.fori_loop(0, n_chunks, body, (trans_final, trans_final * g_trans_ref[tile, :]))
+    jax.lax.fori_loop(0, n_chunks, body, (trans_final, trans_final * g_trans_ref[tile, :],
+                                          chunks.initial()))
 
 
 def _compiler_params(settings: PallasSettings):
@@ -209,7 +258,7 @@ def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, l
     nt, npix = grid.num_tiles, grid.tile_pixels
     channels = params.shape[1] - NUM_GEOMETRY
     acc, trans, last = pl.pallas_call(
-        partial(_forward_kernel, grid, settings.chunk),
+        partial(_forward_kernel, grid, settings.chunk, settings.prefetch),
         out_shape=(jax.ShapeDtypeStruct((nt, channels, npix), params.dtype),
                    jax.ShapeDtypeStruct((nt, npix), params.dtype),
                    jax.ShapeDtypeStruct((nt, npix), jnp.int32)),
@@ -227,7 +276,7 @@ def composite_pallas_backward(grid: TileGrid, settings: PallasSettings, params, 
     forward's params (N, D), trans (NT, P) final transmittance and last (NT, P) int32."""
     n, d = params.shape
     grads = pl.pallas_call(
-        partial(_backward_kernel, grid, settings.chunk, settings.interpret),
+        partial(_backward_kernel, grid, settings.chunk, settings.prefetch, settings.interpret),
         out_shape=jax.ShapeDtypeStruct((n + 1, d), params.dtype),
         grid=(grid.num_tiles,),
         input_output_aliases={7: 0},

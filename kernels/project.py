@@ -16,9 +16,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from kernels.gaussians import Gaussians, covariance
+from kernels.gaussians import Gaussians, quat_to_rotmat
 from kernels.pytree import pytree_dataclass
-from kernels.sh import sh_to_rgb
+from kernels.sh import sh_basis, sh_degree_from_coeffs
 
 SCREEN_DILATION = 0.3  # px², added to the 2D covariance: the 3DGS low-pass / anti-alias filter
 SIGMA_EXTENT = 3.0     # screen radius = 3σ along the major axis
@@ -45,6 +45,16 @@ class Projected:
     visible: jax.Array    # (N,) bool: in front of the near plane, opaque enough, touches a tile
 
 
+def _mm(a, b):
+    """a (M, K) · b (K, L) written out as K broadcast products: under vmap, only elementwise
+    operations, which a GPU fuses into the projection's one kernel (a batched 3×3 matrix
+    product or a length-3 reduction would each be a kernel of its own)."""
+    out = a[:, 0:1] * b[0:1, :]
+    for k in range(1, a.shape[1]):
+        out = out + a[:, k:k + 1] * b[k:k + 1, :]
+    return out
+
+
 def camera_center(world_to_camera):
     """world_to_camera (4, 4) → (3,) camera centre in world coordinates: −Rᵀt."""
     rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
@@ -59,7 +69,7 @@ def _project_one(mean, quat, log_scale, opacity_logit, sh, K, world_to_camera, c
     world_to_camera (4, 4); center (3,) camera centre (``camera_center``).
     """
     rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
-    p = rot @ mean + trans  # (3,) camera-space mean
+    p = _mm(rot, mean[:, None])[:, 0] + trans  # (3,) camera-space mean
     z = p[2]
     in_front = z > near
     zs = jnp.where(in_front, z, 1.0)  # safe depth: culled Gaussians stay finite (and NaN-free in grads)
@@ -74,11 +84,13 @@ def _project_one(mean, quat, log_scale, opacity_logit, sh, K, world_to_camera, c
         jnp.stack([1.0 / zs, jnp.zeros_like(zs), -xz / zs]),
         jnp.stack([jnp.zeros_like(zs), 1.0 / zs, -yz / zs]),
     ])
-    jac = K[:2, :2] @ jac_n  # (2, 3)
-    m = jac @ rot            # (2, 3): world → screen linear map
-    cov2d = m @ covariance(log_scale, quat) @ m.T + SCREEN_DILATION * jnp.eye(2, dtype=mean.dtype)
+    jac = _mm(K[:2, :2], jac_n)  # (2, 3)
+    m = _mm(jac, rot)            # (2, 3): world → screen linear map
+    # Σ₂ = M R S (M R S)ᵀ with the Gaussian's rotation R and scales S: a 2×3 factor.
+    factor = _mm(m, quat_to_rotmat(quat)) * jnp.exp(log_scale)[None, :]
+    cov2d = _mm(factor, factor.T) + SCREEN_DILATION * jnp.eye(2, dtype=mean.dtype)
 
-    uv = K[:2, :2] @ (p[:2] / zs) + K[:2, 2]  # (2,)
+    uv = _mm(K[:2, :2], (p[:2] / zs)[:, None])[:, 0] + K[:2, 2]  # (2,)
     a, b, c = cov2d[0, 0], cov2d[0, 1], cov2d[1, 1]
     det = a * c - b * b  # ≥ 0.09 thanks to the dilation
     conic = jnp.stack([c, -b, a]) / det
@@ -106,8 +118,10 @@ def _project_one(mean, quat, log_scale, opacity_logit, sh, K, world_to_camera, c
     rect = jnp.where(visible, jnp.stack([x0, y0, x1, y1]), jnp.array([0, 0, -1, -1], jnp.int32))
 
     direction = mean - center
-    direction = direction / jnp.sqrt(jnp.maximum(jnp.sum(direction * direction), DIR_EPS))
-    color = sh_to_rgb(sh, direction)
+    norm2 = direction[0] ** 2 + direction[1] ** 2 + direction[2] ** 2
+    direction = direction / jnp.sqrt(jnp.maximum(norm2, DIR_EPS))
+    basis = sh_basis(direction, sh_degree_from_coeffs(sh.shape[0]))  # (K,)
+    color = jnp.maximum(_mm(basis[None, :], sh)[0] + 0.5, 0.0)  # 3DGS: clamp(SH + ½, 0)
     return uv, conic, z, opacity, color, jnp.where(visible, radius, 0.0), rect, visible
 
 

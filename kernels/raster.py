@@ -144,23 +144,30 @@ def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
     too_many = jnp.sum(counts.astype(jnp.float32)) > MAX_INTERSECTIONS
     needed = jnp.where(too_many, jnp.iinfo(jnp.int32).max, ends[-1])
 
-    # Owner of each slot: mark the first slot of every Gaussian with its rank, then a
-    # running max carries it forward (O(C); much faster than a binary search per slot).
+    # Owner of each slot: a 1 at the first slot of every visible Gaussian, whose running
+    # sum is the owner's rank in depth order (visible Gaussians sort first: the culled ones'
+    # keys are +inf). One scatter and one cumulative sum (a library scan on a GPU).
     starts = ends - counts_sorted
-    marks = jnp.zeros(capacity, jnp.int32).at[jnp.where(counts_sorted > 0, starts, capacity)].max(
-        jnp.arange(n, dtype=jnp.int32), mode="drop")
-    rank = jax.lax.cummax(marks)
+    marks = jnp.zeros(capacity, jnp.int32).at[jnp.where(counts_sorted > 0, starts, capacity)].add(
+        1, mode="drop")
+    rank = jnp.maximum(jnp.cumsum(marks, dtype=jnp.int32) - 1, 0)
     slot = jnp.arange(capacity, dtype=jnp.int32)
     gid = order[rank]
     local = slot - starts[rank]  # index inside the Gaussian's rectangle
     width = jnp.maximum(span_x[gid], 1)
     tile = (y0[gid] + local // width) * grid.tiles_x + x0[gid] + local % width
-    tile = jnp.where((slot < needed) & ~too_many, tile, grid.num_tiles)  # sentinel sorts last
+    nt = grid.num_tiles
+    tile = jnp.where((slot < needed) & ~too_many, tile, nt)  # sentinel sorts last
     # Stable: entries of one tile keep the depth order they were expanded in.
     sorted_tile, gaussian_ids = jax.lax.sort((tile, gid), num_keys=1, is_stable=True)
-    bounds = jnp.searchsorted(sorted_tile, jnp.arange(grid.num_tiles + 1, dtype=jnp.int32),
-                              side="left").astype(jnp.int32)
-    tile_start, tile_count = bounds[:-1], jnp.diff(bounds)
+    # Each tile's run: its last entry is where the next entry's tile differs.
+    following = jnp.concatenate([sorted_tile[1:], jnp.full((1,), nt, jnp.int32)])
+    run_end = jnp.zeros(nt, jnp.int32).at[jnp.where(following != sorted_tile, sorted_tile, nt)].set(
+        slot + 1, mode="drop")
+    # An empty tile's end is that of the last non-empty tile before it (0 if none).
+    run_end = jax.lax.cummax(run_end)
+    tile_start = jnp.concatenate([jnp.zeros((1,), jnp.int32), run_end[:-1]])
+    tile_count = run_end - tile_start
     return TileLists(gaussian_ids, tile_start, tile_count), needed
 
 
