@@ -4,8 +4,9 @@ Scene nodes (``view.scene`` makes their arrays):
 
 * ``/background``: the background Gaussians (``background.ply``), one splat node;
 * ``/objects/<id>``: a frame per object carrying its motion since t = 0 (S_i(t) S_i(0)⁻¹); under it
-  ``splats`` (its Gaussians placed at t = 0, sent once), ``mesh`` (the completed mesh) and
-  ``collision/part_NN`` (its convex parts, semi-transparent in its instance colour);
+  ``splats`` (its Gaussians placed at t = 0, sent once), ``mesh`` (the completed mesh),
+  ``collision/part_NN`` (its convex parts, semi-transparent in its instance colour) and
+  ``grab/part_NN`` (the parts shrunk inside the Gaussians at opacity 0: what a drag picks);
 * ``/source``: the capture's own Gaussians in the world frame (before conversion), sent when first
   shown;
 * ``/cameras/<k>``: the capture's camera frustums; clicking one moves the view to it.
@@ -45,6 +46,7 @@ from phirie_jax.view.scene import (
 
 MISSING_VISER = "viser is not importable (install the viewer extra: pip install 'phirie_jax[viewer]')"
 COLLISION_OPACITY = 0.45
+GRAB_SHRINK = 0.75     # a drag handle is the convex parts scaled by this about their centre
 MESH_COLOUR = (200, 200, 205)
 FRUSTUM_LINE_PX = 1.5  # thin at any distance: the view starts inside camera 0's own frustum
 STATUS_PERIOD = 0.25   # s between updates of the panel's time readout
@@ -117,11 +119,13 @@ class Viewer:
                 self._nodes[f"mesh {o.id}"] = scene.add_mesh_simple(
                     f"/objects/{o.id}/mesh", placed_vertices(vertices, placement0), faces, color=MESH_COLOUR,
                     visible=False)
-            for k, path in enumerate(entry.get("collision") or []):
-                vertices, faces = read_mesh(layout.resolve(self.out_dir, path))
+            parts = [read_mesh(layout.resolve(self.out_dir, path)) for path in entry.get("collision") or []]
+            parts = [(placed_vertices(vertices, placement0), faces) for vertices, faces in parts]
+            for k, (vertices, faces) in enumerate(parts):
                 self._nodes[f"part {o.id} {k}"] = scene.add_mesh_simple(
-                    f"/objects/{o.id}/collision/part_{k:02d}", placed_vertices(vertices, placement0), faces,
-                    color=colour, opacity=COLLISION_OPACITY, flat_shading=True, visible=False)
+                    f"/objects/{o.id}/collision/part_{k:02d}", vertices, faces, color=colour,
+                    opacity=COLLISION_OPACITY, flat_shading=True, visible=False)
+            self._add_grab_handles(o.id, parts)
         for k, view in enumerate(self.views):
             frustum = scene.add_camera_frustum(f"/cameras/{k}", fov=view.fov, aspect=view.aspect,
                                                scale=self.config.frustum_scale, color=(40, 40, 40),
@@ -140,13 +144,24 @@ class Viewer:
         scene.on_click()(self._on_click)
 
     def _add_object_splats(self, object_id: int) -> None:
-        """(Re)send one object's splat node (instance colours or its own) and bind its drag."""
+        """(Re)send one object's splat node (instance colours or its own)."""
         arrays = self.objects[object_id]
         if self._instance_colours:
             arrays = arrays.coloured(palette_colour(self.live.object_ids.index(object_id)))
-        node = self._splats(f"/objects/{object_id}/splats", arrays)
-        node.on_drag("left")(lambda event, object_id=object_id: self._on_drag(object_id, event))
-        self._nodes[f"splats {object_id}"] = node
+        self._nodes[f"splats {object_id}"] = self._splats(f"/objects/{object_id}/splats", arrays)
+
+    def _add_grab_handles(self, object_id: int, parts: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """What a drag grabs: the object's convex parts (placed at t = 0), shrunk by ``GRAB_SHRINK``
+        towards their centre so their depth stays behind the object's own Gaussians, drawn at
+        opacity 0 (viser's client picks meshes, not splats; a hidden mesh is not picked)."""
+        if not parts:
+            return
+        centre = np.concatenate([vertices for vertices, _ in parts]).mean(0)
+        for k, (vertices, faces) in enumerate(parts):
+            handle = self.server.scene.add_mesh_simple(
+                f"/objects/{object_id}/grab/part_{k:02d}", centre + GRAB_SHRINK * (vertices - centre), faces,
+                opacity=0.0, cast_shadow=False, receive_shadow=False)
+            handle.on_drag("left")(lambda event, object_id=object_id: self._on_drag(object_id, event))
 
     def _look_through(self, client, view) -> None:
         client.camera.fov = view.fov

@@ -1,6 +1,7 @@
 """``phirie view`` in a real browser: the server on loopback, Debian's Chromium headless (software
 WebGL) driven by Playwright. The page draws the scene (non-blank; the objects' pixels change when
-"Background only" hides them), and a click on an object shoots it: the server sees it move.
+"Background only" hides them), a click on an object shoots it and a drag pulls another: the server
+sees them move.
 Skipped, with the reason, where Chromium, Playwright or viser is missing (CI installs them)."""
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ VIEWPORT = {"width": 1000, "height": 700}
 WAIT_S = 30.0            # for the page to connect, draw and answer
 BLANK_STD = 5.0          # 8-bit levels: a drawn scene varies more than an empty canvas
 OBJECT_CHANGE = 20.0     # mean 8-bit colour change where an object was, when it is hidden
-MOVED_M = 0.01           # the shot object moves more than this
+MOVED_M = 0.01           # a shot or dragged object moves more than this
+DRAG_PX, DRAG_STEPS = 120, 15   # the drag: pixels to the left, in pointer moves
 
 
 def free_port() -> int:
@@ -77,11 +79,16 @@ def _object_screen_points(viewer, client) -> dict[int, tuple[float, float]]:
     return points
 
 
+def positions(viewer) -> dict[int, np.ndarray]:
+    """Each object's displacement since t = 0 on the server."""
+    return {object_id: position.copy() for object_id, _, position in viewer.live.motions()}
+
+
 def _image(png: bytes) -> np.ndarray:
     return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float64)
 
 
-def test_page_draws_the_objects_and_a_click_shoots_one(viewer, tmp_path):
+def test_page_draws_the_objects_a_click_shoots_one_and_a_drag_pulls_another(viewer, tmp_path):
     with sync_playwright() as playwright:
         context = playwright.chromium.launch_persistent_context(
             str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=FLAGS, viewport=VIEWPORT)
@@ -111,14 +118,28 @@ def test_page_draws_the_objects_and_a_click_shoots_one(viewer, tmp_path):
                 assert np.abs(shown[patch] - hidden[patch]).mean() > OBJECT_CHANGE, (object_id, (x, y))
 
             page.wait_for_timeout(1500)
-            target, (u, v) = min(points.items(), key=lambda item: item[1][0])  # clear of the panel (right)
-            before = {i: p.copy() for i, _, p in viewer.live.motions()}
+            order = sorted(points.items(), key=lambda item: item[1][0])  # left to right, clear of the panel
+            target, (u, v) = order[0]
+            before = positions(viewer)
             page.mouse.click(box["x"] + u * box["width"], box["y"] + v * box["height"])
             shot = until(lambda: viewer.live.shots[-1] if viewer.live.shots else None, "the click to reach the server")
             assert shot["hit"] == target, shot
-            moved = until(lambda: np.linalg.norm(
-                dict((i, p) for i, _, p in viewer.live.motions())[target] - before[target]) > MOVED_M,
-                "the shot object to move")
-            assert moved
+            until(lambda: np.linalg.norm(positions(viewer)[target] - before[target]) > MOVED_M,
+                  "the shot object to move")
+
+            dragged, (u, v) = order[-1]   # drag the other one leftwards: it follows the pointer
+            x, y = box["x"] + u * box["width"], box["y"] + v * box["height"]
+            before = positions(viewer)
+            page.mouse.move(x, y)
+            page.mouse.down()
+            for step in range(1, DRAG_STEPS + 1):
+                page.mouse.move(x - DRAG_PX * step / DRAG_STEPS, y, steps=2)
+                page.wait_for_timeout(50)
+            until(lambda: dragged in viewer.live.grabs, "the drag to grab the object")
+            page.wait_for_timeout(800)
+            page.mouse.up()
+            until(lambda: not viewer.live.grabs, "the drag to end")
+            moved = positions(viewer)[dragged] - before[dragged]
+            assert np.linalg.norm(moved) > MOVED_M, moved
         finally:
             context.close()
