@@ -1,9 +1,12 @@
 """Interactive-environment benchmark: frames/s and simulated steps/s; prints one JSON object.
 
-Single environment (MuJoCo C + the JAX renderer) and batched worlds (MJX + one
-worlds × cameras rasterization), each against looping the single environment over the
-same worlds and cameras, measured in the same run. Compile times are reported apart from
-run times (first call vs. the median of later calls).
+Single environment (MuJoCo C + the JAX renderer) and batched worlds (MJX + the batched
+renderer: the background binned once per camera, each world's body-attached Gaussians merged
+into it), each against looping the single environment over the same worlds and cameras,
+measured in the same run. Compile times are reported apart from run times (first call vs.
+the median of later calls). Each batched run also renders world 0's state with the single
+environment (the same body poses) and reports the largest pixel difference from the batched
+image.
 
     python -m experiments.bench_env OUT_DIR [--worlds 1 8 32] [--cameras 4]
 
@@ -23,6 +26,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from experiments.report import emit
 from phirie_jax.interact.batched import BatchedEnvironment  # noqa: E402
 from phirie_jax.interact.environment import Environment  # noqa: E402
 
@@ -51,12 +55,21 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
 
 
 def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
-                  collision: str) -> dict:
+                  collision: str, max_images: int) -> dict:
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
     step_first, step_s = timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
-    render_first, render_s = timed(lambda: batch.render(cameras).rgb, repeats)
+    render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb,
+                                   repeats)
+    out = batch.render(cameras, max_images=max_images)
+    # world 0's body poses in the single environment (as MJX computed them: after a step
+    # they are those of the step's start, in both simulators): the same image
+    env.data.xpos[:] = np.asarray(batch.data.xpos[0])
+    quats = np.asarray(batch.data.xquat[0], np.float64)
+    env.data.xquat[:] = quats / np.linalg.norm(quats, axis=1, keepdims=True)  # float32 in MJX
+    single = np.asarray(env.render(cameras[0]).rgb)
+    vs_single = float(np.max(np.abs(np.asarray(out.rgb[0, 0]) - single)))
     # the same work with the single environment in a loop: worlds × steps, worlds × cameras frames
     env.reset()
     t0 = time.perf_counter()
@@ -80,6 +93,8 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
         "loop_frames_per_s": round(frames / loop_render_s, 2),
         "speedup_steps_vs_loop": round(loop_step_s / step_s, 2),
         "speedup_frames_vs_loop": round(loop_render_s / render_s, 2),
+        "images_per_render_call": max_images, "moving_gaussians": int(env.object_gaussians.num),
+        "max_abs_rgb_diff_world0_vs_single": vs_single,
     }
 
 
@@ -93,6 +108,9 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=None, help="render width (default: the cameras')")
     parser.add_argument("--collision", choices=["hull", "parts"], default="hull",
                         help="the batched worlds' collision model (phirie_jax.interact.mjx_model)")
+    parser.add_argument("--max-images", type=int, default=256,
+                        help="images per batched rasterization call")
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
 
     env = Environment.load(args.out_dir)
@@ -110,9 +128,10 @@ def main() -> None:
     }
     print(json.dumps(result["single"]), file=sys.stderr, flush=True)
     for worlds in args.worlds:
-        result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats, args.collision))
+        result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats,
+                                               args.collision, args.max_images))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
-    print(json.dumps(result, indent=1))
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

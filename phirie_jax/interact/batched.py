@@ -4,9 +4,15 @@
 once and holds N copies of its state. By default the objects collide through one convex hull
 each (``collision="hull"``, ``phirie_jax.interact.mjx_model``: MJX compiles one function per
 distinct part pair); ``collision="parts"`` keeps the exported parts, as the single environment. ``step`` advances every world in one jitted,
-vmapped program; ``render`` places each world's object Gaussians by its own body poses
-(``compose_scene``, vmapped over worlds) and rasterizes worlds × cameras in one call
-(``phirie_jax.render.render_batch``).
+vmapped program; ``render`` draws worlds × cameras with a ``WorldRenderer``.
+
+``WorldRenderer`` renders many worlds of one environment from the same cameras: the
+Gaussians that never move (the background) are projected, coloured and binned once per camera
+(``kernels.raster_merge.static_view``); per world only the Gaussians attached to bodies — the
+environment's ``object_gaussians`` with their ``body_index``, whatever bodies they belong
+to — are placed by that world's body placements, projected, binned and merged into the
+static tile lists by depth (``rasterize_over_static``), so each world's image is the single
+environment's render of the same state (one depth order per pixel).
 """
 
 from __future__ import annotations
@@ -18,10 +24,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kernels.gaussians import quat_to_rotmat
-from phirie_jax.interact.environment import Environment, compose_scene, load_spec
+from kernels.gaussians import Gaussians, Sim3, quat_to_rotmat, transform_bodies
+from kernels.raster import RasterConfig, RasterOutput
+from kernels.raster_merge import StaticView, rasterize_over_static, static_view
+from phirie_jax.interact.environment import Environment, body_matrix, compose_scene, load_spec
 from phirie_jax.interact.mjx_model import CollisionModel, hull_collision_spec, multi_part
+from phirie_jax.render import (INITIAL_CAPACITY, INTERSECTIONS_GUESS, camera_arrays,
+                               grown_capacity, next_power_of_two, pad_gaussians)
 from phirie_jax.types import Camera
+
+MAX_IMAGES = 256  # images per rasterization call: bounds the merged lists' memory
 
 
 @functools.partial(jax.jit, static_argnames=("steps",))
@@ -67,9 +79,14 @@ class BatchedEnvironment:
         self.data = jax.tree.map(lambda x: jnp.broadcast_to(x, (self.num_worlds,) + x.shape), one)
         self.body_ids = jnp.asarray([o.body_id for o in env.objects], jnp.int32)
         pose0 = np.stack([o.pose0 for o in env.objects]) if env.objects else np.zeros((0, 4, 4))
-        t0 = env.body_poses() if env.objects else np.zeros((0, 4, 4))
+        # T_i(0) from the model's initial state, as the worlds start (not the environment's
+        # current state, which may have been stepped)
+        t0 = (body_matrix(data.xpos[[o.body_id for o in env.objects]],
+                          data.xquat[[o.body_id for o in env.objects]])
+              if env.objects else np.zeros((0, 4, 4)))
         self.inverse_t0_pose0 = jnp.asarray(np.linalg.inv(t0) @ pose0 if env.objects else pose0,
                                             jnp.float32)
+        self._renderer: WorldRenderer | None = None
 
     @property
     def timestep(self) -> float:
@@ -96,31 +113,112 @@ class BatchedEnvironment:
         compose = jax.vmap(compose_scene, in_axes=(None, None, None, 0))
         return compose(self.env.background, self.env.object_gaussians, self.env.body_index, placements)
 
-    def render(self, cameras: list[Camera | int], background=(0.0, 0.0, 0.0), max_images: int = 64):
-        """Worlds × cameras; outputs with leading (N, C) axes.
+    def render(self, cameras: list[Camera | int], background=(0.0, 0.0, 0.0),
+               max_images: int = MAX_IMAGES) -> RasterOutput:
+        """Worlds × cameras; outputs with leading (N, C) axes (``WorldRenderer.render``)."""
+        if self._renderer is None:
+            self._renderer = WorldRenderer(self.env)
+        return self._renderer.render(self.placements(), cameras, background, max_images)
 
-        One rasterization call renders up to ``max_images`` images (every camera of
-        ``max_images // C`` worlds; the last call is padded to the same size, so one compiled
-        program serves every call): N worlds' scenes at once would not fit a GPU's memory.
-        """
-        from phirie_jax.render import render_batch
 
+@functools.partial(jax.jit, static_argnames=("width", "height", "config"))
+def _static_views(background: Gaussians, Ks, world_to_cameras, *, width: int, height: int,
+                  config: RasterConfig) -> StaticView:
+    """The background binned for each of C cameras: Ks (C, 3, 3), world_to_cameras (C, 4, 4)."""
+    return jax.vmap(lambda K, W: static_view(background, K, W, width=width, height=height,
+                                             config=config))(Ks, world_to_cameras)
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity"))
+def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks, world_to_cameras,
+                   background, *, width: int, height: int, config: RasterConfig,
+                   moving_capacity: int) -> RasterOutput:
+    """Images (W, C) of W worlds: attached Gaussians (Nm) with body (Nm,) int32, placements
+    (W, K, 4, 4) canonical → world per body, views of C cameras (Ks (C, 3, 3),
+    world_to_cameras (C, 4, 4)), background (3,)."""
+
+    def one_world(placement):
+        moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
+        return jax.vmap(lambda view, K, W: rasterize_over_static(
+            view, moved, K, W, width=width, height=height, moving_capacity=moving_capacity,
+            background=background, config=config))(views, Ks, world_to_cameras)
+
+    return jax.vmap(one_world)(placements)
+
+
+class WorldRenderer:
+    """Renders many worlds of one ``Environment`` from shared cameras (module docstring).
+
+    The background's tile lists are kept per camera set (the background never moves); the
+    capacities of both sets start from a guess and grow, as ``phirie_jax.render.Renderer``'s,
+    when a render reports overflow, so nothing is dropped.
+    """
+
+    def __init__(self, env: Environment, config: RasterConfig = RasterConfig()):
+        self.env = env
+        self.config = config
+        attached, body = env.object_gaussians, env.body_index
+        if attached.num == 0:  # no body: one transparent Gaussian keeps the shapes non-empty
+            attached, body = pad_gaussians(attached, 1), jnp.zeros(1, jnp.int32)
+        self.attached, self.body = attached, jnp.asarray(body, jnp.int32)
+        self.moving_capacity = next_power_of_two(max(INITIAL_CAPACITY // 16,
+                                                     INTERSECTIONS_GUESS * attached.num))
+        self._views: dict[tuple, tuple[StaticView, RasterConfig]] = {}
+        self.retries = 0
+
+    def views(self, cameras: list[Camera], dtype=np.float32):
+        """Static views of the background for these cameras (cached): (views, config, Ks,
+        world_to_cameras, width, height)."""
+        arrays = [camera_arrays(c, None, dtype) for c in cameras]
+        sizes = {(a[2], a[3]) for a in arrays}
+        if len(sizes) != 1:
+            raise ValueError(f"WorldRenderer: cameras give different image sizes {sorted(sizes)}")
+        (width, height), = sizes
+        Ks = np.stack([a[0] for a in arrays])
+        w2cs = np.stack([a[1] for a in arrays])
+        key = (Ks.tobytes(), w2cs.tobytes(), width, height)
+        if key not in self._views:
+            background = self.env.background
+            config = dataclasses.replace(self.config, capacity=next_power_of_two(max(
+                INITIAL_CAPACITY, INTERSECTIONS_GUESS * background.num)))
+            while True:
+                views = _static_views(background, Ks, w2cs, width=width, height=height,
+                                      config=config)
+                needed = int(jnp.max(views.needed))
+                if needed <= config.capacity:
+                    break
+                self.retries += 1
+                config = grown_capacity(config, needed, "render the batched worlds at a lower "
+                                                        "resolution")
+            self._views[key] = (views, config)
+        views, config = self._views[key]
+        return views, config, jnp.asarray(Ks), jnp.asarray(w2cs), width, height
+
+    def render(self, placements, cameras: list[Camera | int], background=(0.0, 0.0, 0.0),
+               max_images: int = MAX_IMAGES) -> RasterOutput:
+        """placements (N, K, 4, 4) canonical → world of every body in N worlds; outputs with
+        leading (N, C) axes. Worlds are rendered ``max_images // C`` at a time (the last call
+        padded to the same size, so one compiled program serves every call)."""
         cams = [self.env.camera(c) for c in cameras]
-        n, c = self.num_worlds, len(cams)
+        views, config, Ks, w2cs, width, height = self.views(cams)
+        placements = jnp.asarray(placements, jnp.float32)
+        if placements.shape[1] == 0:  # no body: the padding Gaussian's placement
+            placements = jnp.broadcast_to(jnp.eye(4), (placements.shape[0], 1, 4, 4))
+        n, c = placements.shape[0], len(cams)
         per = max(1, min(n, max_images // c))
+        bg = jnp.asarray(background, jnp.float32)
         chunks = []
         for start in range(0, n, per):
             worlds = np.minimum(np.arange(start, start + per), n - 1)
-            pairs = jax.tree.map(lambda x: jnp.repeat(x, c, axis=0), self.gaussians(worlds))  # w·C + k
-            out = render_batch(pairs, cams * per, background=np.asarray(background, np.float32))
-            keep = min(per, n - start) * c
-            chunks.append(jax.tree.map(lambda x: x[:keep] if _batched(x, per * c) else x, out))
-        last = chunks[-1]  # a capacity retry may have changed the static fields: take the last's
-        out = dataclasses.replace(last, **{f.name: jnp.concatenate([getattr(ch, f.name) for ch in chunks])
-                                          for f in dataclasses.fields(last) if _batched(getattr(last, f.name), None)})
-        return jax.tree.map(lambda x: x.reshape((n, c) + x.shape[1:]) if _batched(x, n * c) else x, out)
-
-
-def _batched(x, size: int | None) -> bool:
-    """Whether a render output field carries the image axis (of ``size`` when given)."""
-    return hasattr(x, "shape") and x.ndim > 0 and (size is None or x.shape[0] == size)
+            while True:
+                out = _render_worlds(views, self.attached, self.body, placements[worlds], Ks, w2cs,
+                                     bg, width=width, height=height, config=config,
+                                     moving_capacity=self.moving_capacity)
+                moving_needed = int(jnp.max(out.num_intersections - views.needed[None, :]))
+                if moving_needed <= self.moving_capacity:
+                    break
+                self.retries += 1
+                self.moving_capacity = max(2 * self.moving_capacity,
+                                           next_power_of_two(moving_needed))
+            chunks.append(jax.tree.map(lambda x: x[: min(per, n - start)], out))
+        return jax.tree.map(lambda *x: jnp.concatenate(x), *chunks) if len(chunks) > 1 else chunks[0]

@@ -97,15 +97,19 @@ def test_pallas_equals_jax_compositor():
 
 
 def test_lists_cut_by_the_capacity_composite_alike():
-    """96 slots for a scene that needs 154: both keep the nearest 96 entries."""
+    """96 slots for a scene that needs 154: both keep the nearest 96 entries (the Pallas
+    compositor also with its read-ahead)."""
     K, w2c = camera(WIDTH, HEIGHT)
     g, feats = random_scene(seed=5, n=120)
     bg = jnp.zeros(3, jnp.float32)
-    ref, got = (render(g, feats, bg, K, w2c, dataclasses.replace(c, capacity=96))
-                for c in (JAX, PALLAS))
+    read_ahead = dataclasses.replace(PALLAS, pallas=dataclasses.replace(PALLAS.pallas, prefetch=True))
+    ref, got, got_read_ahead = (render(g, feats, bg, K, w2c, dataclasses.replace(c, capacity=96))
+                                for c in (JAX, PALLAS, read_ahead))
     assert bool(ref.overflow) and bool(got.overflow) and int(ref.num_intersections) > 96 + 32
     for key in ("rgb", "depth", "alpha", "features"):
         np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=IMAGE_ATOL, err_msg=key)
+        np.testing.assert_allclose(getattr(got_read_ahead, key), getattr(ref, key), atol=IMAGE_ATOL,
+                                   err_msg=f"read ahead {key}")
 
 
 def test_kernels_lower_to_triton():

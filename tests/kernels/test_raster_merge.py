@@ -18,6 +18,7 @@ WIDTH, HEIGHT = 40, 30
 NUM_STATIC = 80
 CONFIG = RasterConfig(capacity=1 << 11, chunk=8, slots=2)
 MOVING_CAPACITY = 1 << 9
+IMAGE_ATOL = 1e-6  # the same float32 arithmetic, compiled into different programs
 
 full_render = jax.jit(lambda g, f, K, w2c: rasterize(
     g, K, w2c, width=WIDTH, height=HEIGHT, background=jnp.ones(3) * 0.3, features=f,
@@ -53,10 +54,12 @@ def test_merged_lists_render_the_concatenation():
         ref = full_render(concatenate([static, mov]), feats, K, w2c)
         got = merged_render(view, mov, f_moving, K, w2c)
         for key in ("rgb", "depth", "alpha", "features", "radii"):
-            np.testing.assert_array_equal(getattr(got, key), getattr(ref, key), err_msg=f"{name} {key}")
+            np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=IMAGE_ATOL,
+                                       err_msg=f"{name} {key}")
         for key in ("num_visible", "num_intersections", "max_tile_intersections", "overflow"):
             assert int(getattr(got, key)) == int(getattr(ref, key)), (name, key)
-    assert float(jnp.max(jnp.abs(full_render(static, f_static, K, w2c).rgb - ref.rgb))) == 0.0
+    static_only = full_render(static, f_static, K, w2c)
+    np.testing.assert_allclose(static_only.rgb, ref.rgb, atol=IMAGE_ATOL)  # moving set behind
     # the moving set did change the first image
     first = full_render(concatenate([static, moving]), feats, K, w2c)
     assert float(jnp.max(jnp.abs(first.rgb - ref.rgb))) > 0.05
