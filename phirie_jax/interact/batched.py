@@ -69,7 +69,7 @@ class BatchedEnvironment:
             raise ValueError(f"collision {collision!r} (expected 'hull' or 'parts')")
         merged = [o.body for o in env.objects if collision == "hull" and multi_part(env.model, o.body_id)]
         if merged:
-            self.mj_model = hull_collision_spec(load_spec(env.out_dir, env.with_pusher), env.model, merged).compile()
+            self.mj_model = hull_collision_spec(_source_spec(env), env.model, merged).compile()
         else:
             self.mj_model = env.model
         self.model = mjx.put_model(self.mj_model)
@@ -119,6 +119,15 @@ class BatchedEnvironment:
         if self._renderer is None:
             self._renderer = WorldRenderer(self.env)
         return self._renderer.render(self.placements(), cameras, background, max_images)
+
+
+def _source_spec(env: Environment):
+    """The MjSpec the environment's model came from (its robot and pusher included), or the
+    scene folder's when it was built from a compiled model."""
+    try:
+        return env.spec()
+    except RuntimeError:
+        return load_spec(env.out_dir, env.with_pusher)
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "config"))
