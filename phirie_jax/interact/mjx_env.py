@@ -2,20 +2,29 @@
 ``step(state, action)``, jit- and vmap-able, observations with rendered images.
 
 ``MjxPickPlace(env, object_id, goal)`` takes a single ``Environment`` with a robot and puts its
-model on the device (objects colliding through one convex hull each, as ``BatchedEnvironment``
-does, or their exported parts). A ``State`` holds the MJX data, the observation, reward, done
-and ``info`` (the episode's rng, step count and the object's start rotation).
+model on the device (``mjx_model``). A ``State`` holds the MJX data, the observation, reward,
+done and ``info``: the episode's rng, step count, the task (``target``: the object's index
+among the scene's objects, ``goal`` (2,)) and the target's start rotation.
 
-* ``reset(rng)``: the home state with every object moved within ``placement_range`` of its
-  converted place at a random yaw: ``CANDIDATES`` draws per object, the first whose footprint
-  circle clears the objects placed before it (a fixed-size rejection sampler, so it traces);
+* ``reset(rng, task=None)``: the home state with every object moved within ``placement_range``
+  of its converted place at a random yaw: ``CANDIDATES`` draws per object, the first whose
+  footprint circle clears the objects placed before it (a fixed-size rejection sampler, so it
+  traces). ``task`` (``menv.task(object_id, goal)``; default the constructor's) is data, not
+  part of the program: one compiled reset and step serve every object and goal;
 * ``step(state, action)``: ``action`` is the control vector (nu,) in the actuators' own units
   (the robot's servo targets and gripper), held for ``substeps`` MJX steps;
-* observation: ``joint_pos`` / ``joint_vel`` of the arm and gripper, ``object_poses`` (K, 7) and,
-  with cameras, ``rgb`` (C, H, W, 3) in [0, 1]: the scene's Gaussians placed by this world's
-  body poses (background, objects and robot links, ``compose_scene``) rasterized from the
-  capture cameras and the body-attached cameras posed by this world's state (the wrist);
+* observation: ``joint_pos`` / ``joint_vel`` of the arm and gripper, ``object_poses`` (K, 7),
+  ``goal`` (2,) and, with cameras, ``rgb`` (C, H, W, 3) in [0, 1]: the scene's Gaussians placed
+  by this world's body poses (background, objects and robot links, ``compose_scene``)
+  rasterized from the capture cameras and the body-attached cameras posed by this world's state
+  (the wrist);
 * reward −(object's centre to goal, m); done when it is within 3 cm and upright.
+
+The MJX model (``mjx_model``) differs from the single environment's in contacts only: the
+robot collides through one box per finger (``robot.collision``) and each object through one
+convex hull (``collision="hull"``, ``interact.mjx_model``), so MJX traces a dozen collision
+functions instead of a hundred. Bodies, joints, actuators, masses and inertias are the same,
+so MuJoCo C runs the same model for reference (the tests do).
 
 Rasterization inside jit needs static capacities: they are fitted once on the initial scene
 (``Renderer.fitted_config``) with ``CAPACITY_MARGIN``; ``info["render_overflow"]`` reports a
@@ -31,11 +40,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kernels.gaussians import quat_to_rotmat
+from kernels.gaussians import quat_multiply, quat_to_rotmat
 from kernels.pytree import pytree_dataclass
 from phirie_jax.interact.environment import Environment, compose_scene
 from phirie_jax.interact.mjx_model import CollisionModel, body_frame_vertices, hull_collision_spec, multi_part
 from phirie_jax.interact.robot import script
+from phirie_jax.interact.robot.collision import pad_collision_spec
 
 CANDIDATES = 32            # placement draws per object at reset
 CAPACITY_MARGIN = 2        # × the tile intersections the initial scene needed, per camera
@@ -48,7 +58,22 @@ class State:
     obs: dict                  # see the module docstring
     reward: jax.Array          # ()
     done: jax.Array            # () bool
-    info: dict                 # rng (2,), step (), start_rotation (3, 3), render_overflow ()
+    info: dict                 # rng (2,), step (), target (), goal (2,), start_rotation (3, 3),
+                               # render_overflow ()
+
+
+def mjx_model(env: Environment, collision: CollisionModel = "hull"):
+    """The ``mujoco.MjModel`` batched worlds of ``env`` run on MJX (module docstring): the robot
+    (when there is one) collides through its finger pads, each object through its hull
+    (``"hull"``) or its exported parts (``"parts"``)."""
+    if collision not in ("hull", "parts"):
+        raise ValueError(f"collision {collision!r} (expected 'hull' or 'parts')")
+    spec = env.spec()
+    if env.robot is not None:
+        spec = pad_collision_spec(spec, env.model, env.robot)
+    merged = [o.body for o in env.objects if o.id is not None and collision == "hull"
+              and multi_part(env.model, o.body_id)]
+    return hull_collision_spec(spec, env.model, merged).compile()
 
 
 class MjxPickPlace:
@@ -63,19 +88,17 @@ class MjxPickPlace:
         if env.robot is None:
             raise ValueError("MjxPickPlace needs an environment with a robot (Environment.load(..., robot=...))")
         self.env = env
-        merged = [o.body for o in env.objects if o.id is not None and collision == "hull"
-                  and multi_part(env.model, o.body_id)]
-        self.mj_model = hull_collision_spec(env.spec(), env.model, merged).compile() if merged else env.model
+        self.mj_model = mjx_model(env, collision)
         self.model = mjx.put_model(self.mj_model)
         data = mujoco.MjData(self.mj_model)
         env.robot.set_home(self.mj_model, data)
         mujoco.mj_forward(self.mj_model, data)
         self._data0 = mjx.put_data(self.mj_model, data)
         self.substeps = script.substeps(env.timestep, control_hz)
-        self.object_id, self.goal = object_id, jnp.asarray(np.asarray(goal, np.float64)[:2], jnp.float32)
         objects = [o for o in env.objects if o.id is not None]
+        self.object_ids = [o.id for o in objects]
         self.object_bodies = np.array([o.body_id for o in objects])
-        self.target = [o.id for o in objects].index(object_id)
+        self.default_task = self.task(object_id, goal)
         self.free_qpos = np.array([self.mj_model.jnt_qposadr[self.mj_model.body_jntadr[b]] for b in self.object_bodies])
         robot = env.robot
         self.joints = np.concatenate([robot.arm_qpos, robot.gripper_qpos])
@@ -88,9 +111,16 @@ class MjxPickPlace:
             centres.append(0.5 * (lo + hi))
             radii.append(float(np.max(np.linalg.norm((verts - 0.5 * (lo + hi))[:, :2], axis=1))))
         self.body_centres = jnp.asarray(np.asarray(centres), jnp.float32)   # (K, 3) body frame
-        self.radii = jnp.asarray(radii, jnp.float32)
+        self.radii = jnp.asarray(radii, jnp.float32)                          # (K,) footprint circles
         self.placement_range = float(placement_range)
         self._setup_rendering(cameras, width, background)
+
+    def task(self, object_id: int, goal) -> dict:
+        """The task as data for ``reset``: ``target`` () int32 (the object's index), ``goal`` (2,)."""
+        if object_id not in self.object_ids:
+            raise ValueError(f"object {object_id} is not a simulated object (expected one of {self.object_ids})")
+        return {"target": jnp.asarray(self.object_ids.index(object_id), jnp.int32),
+                "goal": jnp.asarray(np.asarray(goal, np.float64)[:2], jnp.float32)}
 
     # --- rendering setup (host, once) ------------------------------------------------------
 
@@ -101,8 +131,8 @@ class MjxPickPlace:
         self.cameras = tuple(cameras)
         self.background = jnp.asarray(background, jnp.float32)
         self.attached_bodies = jnp.asarray([o.body_id for o in env.objects], jnp.int32)
-        pose0 = np.stack([o.pose0 for o in env.objects])
-        self.inverse_t0_pose0 = jnp.asarray(np.linalg.inv(env.body_poses()) @ pose0, jnp.float32)
+        # T_i(t)⁻¹ S_i(t) = T_i(0)⁻¹ S_i(0) at any t: the environment may have moved
+        self.inverse_t0_pose0 = jnp.asarray(np.linalg.inv(env.body_poses()) @ env.placements(), jnp.float32)
         if not self.cameras:
             return
         records = [env.camera(c) for c in self.cameras]
@@ -124,17 +154,21 @@ class MjxPickPlace:
 
     # --- the functional API ---------------------------------------------------------------
 
-    def reset(self, rng) -> State:
+    def reset(self, rng, task: dict | None = None) -> State:
         from mujoco import mjx
 
+        task = self.default_task if task is None else task
         rng, key = jax.random.split(rng)
         data = self._placed(self._data0, key)
-        data = mjx.forward(self.model, data)
-        rotation = data.xmat[self.object_bodies[self.target]]
-        info = {"rng": rng, "step": jnp.zeros((), jnp.int32), "start_rotation": rotation,
-                "render_overflow": jnp.zeros((), bool)}
-        obs, overflow = self._observe(data)
-        reward, done = self._reward(data, rotation)
+        # what the observation and reward read depends on positions only; the first step
+        # computes the rest (as MuJoCo C's mj_step does), so reset compiles no collision or solver
+        for stage in (mjx.kinematics, mjx.com_pos, mjx.camlight):
+            data = stage(self.model, data)
+        rotation = data.xmat[jnp.asarray(self.object_bodies)[task["target"]]]
+        info = {"rng": rng, "step": jnp.zeros((), jnp.int32), "target": task["target"], "goal": task["goal"],
+                "start_rotation": rotation}
+        obs, overflow = self._observe(data, task["goal"])
+        reward, done = self._reward(data, info)
         return State(data, obs, reward, done, {**info, "render_overflow": overflow})
 
     def step(self, state: State, action) -> State:
@@ -142,8 +176,8 @@ class MjxPickPlace:
 
         data = state.data.replace(ctrl=jnp.asarray(action, state.data.ctrl.dtype))
         data = jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.model, d), data)
-        obs, overflow = self._observe(data)
-        reward, done = self._reward(data, state.info["start_rotation"])
+        obs, overflow = self._observe(data, state.info["goal"])
+        reward, done = self._reward(data, state.info)
         info = {**state.info, "step": state.info["step"] + 1, "render_overflow": overflow}
         return State(data, obs, reward, done, info)
 
@@ -164,31 +198,35 @@ class MjxPickPlace:
             clear = jnp.ones(CANDIDATES, bool)
             for j, (other, _) in enumerate(chosen):
                 clear &= jnp.linalg.norm(xy - other, axis=1) > self.radii[i] + self.radii[j] + PLACEMENT_GAP
-            pick = jnp.where(clear.any(), jnp.argmax(clear), 0)
-            chosen.append((jnp.where(clear.any(), xy[pick], centre0[i, :2]), jnp.where(clear.any(), yaws[i, pick], 0.0)))
+            found = clear.any()
+            pick = jnp.where(found, jnp.argmax(clear), 0)
+            chosen.append((jnp.where(found, xy[pick], centre0[i, :2]), jnp.where(found, yaws[i, pick], 0.0)))
         for i, (xy, yaw) in enumerate(chosen):
             c, s = jnp.cos(yaw), jnp.sin(yaw)
             turn = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], rot0.dtype)
             rot = turn @ rot0[i]
             centre = jnp.concatenate([xy, centre0[i, 2:]])
             position = centre - rot @ self.body_centres[i]
+            start = self.free_qpos[i]
             half = yaw / 2
-            quat = _quat_multiply(jnp.array([jnp.cos(half), 0.0, 0.0, jnp.sin(half)]), qpos[self.free_qpos[i] + 3:self.free_qpos[i] + 7])
-            qpos = qpos.at[self.free_qpos[i]:self.free_qpos[i] + 3].set(position).at[self.free_qpos[i] + 3:self.free_qpos[i] + 7].set(quat)
+            quat = quat_multiply(jnp.array([jnp.cos(half), 0.0, 0.0, jnp.sin(half)]), qpos[start + 3:start + 7])
+            qpos = qpos.at[start:start + 3].set(position).at[start + 3:start + 7].set(quat)
         return data.replace(qpos=qpos)
 
-    def _reward(self, data, start_rotation):
-        body = self.object_bodies[self.target]
-        centre = data.xpos[body] + data.xmat[body] @ self.body_centres[self.target]
-        distance = jnp.linalg.norm(centre[:2] - self.goal)
-        tilt = jnp.degrees(jnp.arccos(jnp.clip((data.xmat[body] @ start_rotation.T)[2, 2], -1.0, 1.0)))
+    def _reward(self, data, info):
+        target = info["target"]
+        body = jnp.asarray(self.object_bodies)[target]
+        centre = data.xpos[body] + data.xmat[body] @ self.body_centres[target]
+        distance = jnp.linalg.norm(centre[:2] - info["goal"])
+        up = (data.xmat[body] @ info["start_rotation"].T)[2, 2]
+        tilt = jnp.degrees(jnp.arccos(jnp.clip(up, -1.0, 1.0)))
         return -distance, (distance <= script.SUCCESS_DISTANCE) & (tilt <= script.UPRIGHT_DEG)
 
-    def _observe(self, data) -> tuple[dict, jax.Array]:
+    def _observe(self, data, goal) -> tuple[dict, jax.Array]:
         k = len(self.object_bodies)
         obs = {"joint_pos": data.qpos[self.joints], "joint_vel": data.qvel[self.dofs],
                "object_poses": jnp.concatenate([data.xpos[self.object_bodies], data.xquat[self.object_bodies]],
-                                               axis=1).reshape(k, 7)}
+                                               axis=1).reshape(k, 7), "goal": goal}
         if not self.cameras:
             return obs, jnp.zeros((), bool)
         from kernels.raster import render_batch
@@ -196,7 +234,8 @@ class MjxPickPlace:
 
         rot = quat_to_rotmat(data.xquat[self.attached_bodies].astype(jnp.float32))
         pose = jnp.concatenate([rot, data.xpos[self.attached_bodies][..., None].astype(jnp.float32)], axis=-1)
-        pose = jnp.concatenate([pose, jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0]), pose.shape[:-2] + (1, 4))], axis=-2)
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0]), pose.shape[:-2] + (1, 4))
+        pose = jnp.concatenate([pose, bottom], axis=-2)
         scene = compose_scene(self.env.background, self.env.object_gaussians, self.env.body_index,
                               pose @ self.inverse_t0_pose0)
         w2cs = self.w2cs
@@ -207,9 +246,3 @@ class MjxPickPlace:
         out = render_batch(pad_gaussians(scene, self.bucket), self.Ks, w2cs, width=self.size[0], height=self.size[1],
                            background=self.background, config=self.raster)
         return {**obs, "rgb": out.rgb}, jnp.any(out.overflow)
-
-
-def _quat_multiply(a, b):
-    from kernels.gaussians import quat_multiply
-
-    return quat_multiply(a, b)

@@ -1,7 +1,8 @@
-"""The functional MJX environment: 8 worlds stepped by one jitted, vmapped program equal the
-single MuJoCo C environment for the same actions, and their images its renders.
+"""The functional MJX environment: its model collides through finger pads and object hulls; 8
+worlds stepped by one jitted, vmapped program equal MuJoCo C on the same model for the same
+actions, and their images the single environment's renders of the same states.
 
-Slow: MJX compiles the robot-and-objects model's step for minutes on a 2-core CPU."""
+The stepping test is slow: MJX compiles the robot-and-objects step for about a minute of CPU."""
 
 from __future__ import annotations
 
@@ -12,19 +13,66 @@ import numpy as np
 import pytest
 
 from phirie_jax.interact.environment import Environment
-from phirie_jax.interact.mjx_env import MjxPickPlace
+from phirie_jax.interact.mjx_env import MjxPickPlace, mjx_model
+from phirie_jax.interact.robot.collision import PAD_SUFFIX, colliding_geoms, finger_bodies
 from phirie_jax.interact.robot.config import RobotConfig
 
-pytestmark = pytest.mark.slow
-
-WORLDS, TICKS = 8, 30
-STATE_TOL = 2e-3      # m / rad after 0.5 s: MJX in float32 against MuJoCo C in float64
+WORLDS, TICKS = 8, 15
+STATE_TOL = 2e-3      # m / rad after 0.25 s: MJX in float32 against MuJoCo C in float64
 IMAGE_TOL = 0.02      # mean absolute rgb difference of the same state rendered in and out of jit
+BOX_TOL = 1e-9        # m: a pad against the points of its finger's capsules
+PAD_TIGHT = 2e-4      # m: the capsules' sampled points come this close to the pad's faces
+BACKGROUND = (0.62, 0.66, 0.72)
 
 
-def test_eight_worlds_match_the_single_c_environment(converted):
-    env = Environment.load(converted[0], robot=RobotConfig(spacing=0.03))
-    menv = MjxPickPlace(env, 1, (-0.2, 0.06), cameras=(0, "wrist"), width=32, collision="parts")
+@pytest.fixture(scope="module")
+def env(converted):
+    return Environment.load(converted[0], robot=RobotConfig(spacing=0.03))
+
+
+def test_the_mjx_model_collides_through_finger_pads_and_object_hulls(env):
+    model = mjx_model(env)
+    robot = env.robot
+    colliding = lambda m, bodies: [g for b in bodies for g in colliding_geoms(m, b)]  # noqa: E731
+    fingers = finger_bodies(model, robot)
+    assert len(fingers) == 2
+    pads = colliding(model, robot.bodies)
+    assert sorted(model.geom(g).name for g in pads) == sorted(model.body(b).name + PAD_SUFFIX for b in fingers)
+    for g in pads:
+        assert model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX and model.geom_condim[g] == 3
+        body = int(model.geom_bodyid[g])
+        points = np.concatenate([_capsule_surface(env.model, c) for c in colliding_geoms(env.model, body)
+                                 if env.model.geom_type[c] == mujoco.mjtGeom.mjGEOM_CAPSULE])
+        low, high = model.geom_pos[g] - model.geom_size[g], model.geom_pos[g] + model.geom_size[g]
+        assert np.all(points >= low - BOX_TOL) and np.all(points <= high + BOX_TOL), "the pad holds the capsules"
+        # and no more: the capsules reach the pad's inner face and its tip (the grip, the support)
+        inner = np.argmax(np.abs(model.geom_pos[g][:2]))  # the finger's offset from the hand's axis
+        side = low[inner] if model.geom_pos[g][inner] > 0 else high[inner]
+        assert np.min(np.abs(points[:, inner] - side)) < PAD_TIGHT
+        assert high[2] - points[:, 2].max() < PAD_TIGHT
+    for o in env.objects:
+        if o.id is not None:
+            assert len(colliding_geoms(model, o.body_id)) == 1
+    # the same bodies, joints, actuators and inertia: MuJoCo C runs this model as a reference
+    for field in ("body_mass", "body_inertia", "body_ipos", "jnt_range", "dof_damping", "actuator_gainprm"):
+        np.testing.assert_array_equal(getattr(model, field), getattr(env.model, field))
+    assert model.nq == env.model.nq and model.nu == env.model.nu
+
+
+def _capsule_surface(model, geom: int, samples: int = 2000) -> np.ndarray:
+    """(2·samples, 3) points on a capsule's two end spheres (its extremes lie on them), in its
+    body's frame."""
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, model.geom_quat[geom])
+    ends = model.geom_pos[geom] + np.outer([1.0, -1.0], model.geom_size[geom][1] * rot.reshape(3, 3)[:, 2])
+    directions = np.random.default_rng(geom).normal(size=(samples, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return (ends[:, None, :] + model.geom_size[geom][0] * directions[None]).reshape(-1, 3)
+
+
+@pytest.mark.slow
+def test_eight_worlds_match_mujoco_c_on_the_same_model(env):
+    menv = MjxPickPlace(env, 1, (-0.2, 0.06), cameras=(0, "wrist"), width=32, background=BACKGROUND)
     states = jax.jit(jax.vmap(menv.reset))(jax.random.split(jax.random.PRNGKey(0), WORLDS))
     qpos0 = np.asarray(states.data.qpos, np.float64)
     assert np.abs(qpos0[0] - qpos0[1]).max() > 1e-3, "resets differ per world"
@@ -37,19 +85,25 @@ def test_eight_worlds_match_the_single_c_environment(converted):
     for t in range(TICKS):
         states = step(states, jnp.asarray(actions[:, t], jnp.float32))
     assert not bool(np.any(states.info["render_overflow"]))
+    assert np.abs(np.asarray(states.data.qpos) - qpos0).max() > 0.05, "the arms moved"
+    reference = mujoco.MjData(menv.mj_model)
     for w in range(WORLDS):
-        env.reset()
-        env.data.qpos[:] = qpos0[w]
-        mujoco.mj_forward(env.model, env.data)
+        mujoco.mj_resetData(menv.mj_model, reference)
+        reference.qpos[:] = qpos0[w]
+        mujoco.mj_forward(menv.mj_model, reference)
         for t in range(TICKS):
-            env.data.ctrl[:] = actions[w, t]
-            env.step(menv.substeps)
-        np.testing.assert_allclose(np.asarray(states.data.qpos[w]), env.data.qpos, atol=STATE_TOL)
+            reference.ctrl[:] = actions[w, t]
+            mujoco.mj_step(menv.mj_model, reference, nstep=menv.substeps)
+        np.testing.assert_allclose(np.asarray(states.data.qpos[w]), reference.qpos, atol=STATE_TOL)
         np.testing.assert_allclose(np.asarray(states.obs["object_poses"][w])[:, :3],
-                                   env.data.xpos[menv.object_bodies], atol=STATE_TOL)
+                                   reference.xpos[menv.object_bodies], atol=STATE_TOL)
+        env.reset()
+        env.data.qpos[:] = reference.qpos
+        mujoco.mj_forward(env.model, env.data)
         images = np.asarray(states.obs["rgb"][w])
         assert images.shape == (2, 24, 32, 3)
         for k, camera in enumerate((0, "wrist")):
             cam = env.camera(camera)
-            single = np.asarray(env.render(cam.scaled(32 / cam.width), background=(0.62, 0.66, 0.72)).rgb)
+            single = np.asarray(env.render(cam.scaled(32 / cam.width), background=BACKGROUND).rgb)
             assert np.abs(images[k] - single).mean() < IMAGE_TOL
+    env.reset()
