@@ -15,6 +15,9 @@ support; an object wider than the open gripper (less ``FIT_MARGIN``) does not fi
 effector moves along straight segments with smooth (quintic) timing; the rotation turns to the
 grasp's during the approach and is kept until the arm returns home in joint space.
 
+A plan whose path would bring the robot, or the object it carries, into another object is
+refused (``clearance.first_hit``), as a goal out of reach is: ``UnreachableError``.
+
 Success (``outcome``): the object's centre within ``SUCCESS_DISTANCE`` of the goal and its up
 axis within ``UPRIGHT_DEG`` of where it was.
 """
@@ -26,6 +29,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from phirie_jax.interact.robot.clearance import first_hit
 from phirie_jax.interact.robot.placement import object_centres, scene_supports
 
 SUCCESS_DISTANCE = 0.03   # m (the issue's 3 cm)
@@ -223,6 +227,10 @@ def plan_pick_place(env, object_id: int, goal, config: PickPlaceConfig = PickPla
     marks.append(("settle", len(rows)))
     rows += [rows[-1]] * max(1, int(round(config.settle_s * CONTROL_HZ)))
     grips += [opened] * (len(rows) - len(grips))
+    hit = first_hit(env, object_id, np.asarray(rows), marks)
+    if hit is not None:
+        raise UnreachableError(f"object {object_id} to ({goal[0]:.3f}, {goal[1]:.3f}): {hit.mover} would hit object "
+                               f"{hit.other} during '{hit.segment}' (expected a path clear of the other objects)")
     ctrl = np.repeat(env.data.ctrl[None], len(rows), axis=0)
     ctrl[:, robot.arm_actuators] = lead(env.model, robot, np.asarray(rows), CONTROL_HZ)
     ctrl[:, robot.gripper_actuators] = np.stack([robot.gripper(g) for g in grips])
