@@ -25,6 +25,7 @@ IMAGE_TOL = 2e-4          # float32 rasterization of identically placed Gaussian
 FD_TOL = 1e-5             # Jacobian against central differences (step 1e-6)
 IK_TOL = 2e-3             # m: the solver's position tolerance
 DLS_TOL = 1e-10
+KNOCKED = 0.005           # m: the box moved by a hand or a can that hit it
 COARSE = RobotConfig(spacing=0.015)   # few robot Gaussians: fast renders
 
 
@@ -189,6 +190,21 @@ def test_pick_and_place_moves_the_box_to_its_goal_upright(env):
     assert result["success"], result
     assert max(heights) - heights[0] > 0.1, "carried, not pushed"
     assert np.linalg.norm(env.robot.arm_q(env.data) - env.robot.home) < 0.05, "returned home"
+    env.reset()
+
+
+def test_a_plan_into_another_object_is_refused_and_would_have_moved_it(env, monkeypatch):
+    env.reset()
+    box, can = script.grasp_for(env, 1), script.grasp_for(env, 3)
+    goal = box.centre[:2] - 0.13 * can.normal[:2]  # the can set down beside the tall box, fingers towards it
+    with pytest.raises(script.UnreachableError, match="would hit object 1") as err:
+        script.plan_pick_place(env, 3, goal)
+    assert "\n" not in str(err.value)
+    monkeypatch.setattr(script, "first_hit", lambda *args, **kwargs: None)  # run it anyway
+    env.reset()
+    before = env.data.xpos[env.object(1).body_id].copy()
+    script.run_plan(env, script.plan_pick_place(env, 3, goal))
+    assert np.linalg.norm(env.data.xpos[env.object(1).body_id] - before) > KNOCKED, "a real collision"
     env.reset()
 
 
