@@ -167,6 +167,11 @@ class Raycaster:
         hits = self.cast(np.broadcast_to(centre, offset.shape).copy(), offset / np.maximum(distance, 1e-12)[:, None])
         return hits.depth > distance + tolerance   # misses (inf) count: the camera saw past it
 
+    def faces_camera(self, points: np.ndarray, camera: Camera, tolerance: float) -> np.ndarray:
+        """(N,) bool: each (N, 3) point is on the side of this surface the camera sees: the camera's
+        ray meets the surface no nearer than ``tolerance`` before the point."""
+        return self.seen_through(points, camera, -tolerance)
+
     def depth_map(self, camera: Camera) -> np.ndarray:
         """(H, W) camera-z depth of the first hit per pixel, 0 where the ray misses."""
         hits, _, _ = self.cast_camera(camera)

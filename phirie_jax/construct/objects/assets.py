@@ -107,9 +107,10 @@ def captured_gaussians(scene_gaussians: GaussianSplatData, q_world: np.ndarray, 
 
 
 def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatData, spacing: float,
-                   min_distance: float, neighbours: int, seed: int, seen_free=None) -> tuple[GaussianSplatData, dict]:
+                   min_distance: float, neighbours: int, seed: int, seen=None) -> tuple[GaussianSplatData, dict]:
     """New flat Gaussians on the canonical mesh wherever no kept Gaussian is within ``min_distance``
-    and, with ``seen_free`` ((P, 3) canonical points → (P,) bool), no camera saw through."""
+    and, with ``seen`` ((P, 3) canonical points → (P,) bool), no camera saw that point of the
+    object (or through it)."""
     import trimesh
     from scipy.spatial import cKDTree
 
@@ -124,8 +125,8 @@ def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatD
     else:
         unseen = np.ones(len(points), bool)
     free = np.zeros(len(points), bool)
-    if seen_free is not None and unseen.any():
-        free[unseen] = seen_free(points[unseen])
+    if seen is not None and unseen.any():
+        free[unseen] = seen(points[unseen])
     points, normals = points[unseen & ~free], normals[unseen & ~free]
     n = len(points)
     k_coeffs = kept.sh.shape[1] if kept.num else 1
@@ -143,7 +144,7 @@ def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatD
         log_scales=log_scales.astype(np.float32),
         opacity_logits=np.full(n, np.log(FILL_OPACITY / (1 - FILL_OPACITY)), np.float32), sh=sh)
     return data, {"samples": int(count), "unseen_fraction": float(unseen.mean()) if count else 0.0,
-                  "seen_through_fraction": float(free.mean()) if count else 0.0,
+                  "seen_fraction": float(free.mean()) if count else 0.0,
                   "coloured_from_neighbours": bool(kept.num)}
 
 

@@ -174,8 +174,10 @@ def _visual_gaussians(candidate: Candidate, canon: np.ndarray, frame: assets.Ass
                       q_world: np.ndarray, scene: SceneInput, config: ObjectsConfig, surface=None
                       ) -> tuple[GaussianSplatData | None, dict]:
     """The object's own Gaussians in its canonical frame: the candidate's when it brought some,
-    else the capture's around the placed surface plus fill disks where none were captured and
-    (with the scene ``surface``, a ``Raycaster``) no camera saw through."""
+    else the capture's around the placed surface plus fill disks where none were captured and no
+    camera saw that part of the object or (with the scene ``surface``, a ``Raycaster``) through it:
+    what a camera saw of the object is the captured Gaussians' to show, even where the completed
+    shape is off (a disk there would show through their gaps or stand in front of them)."""
     from phirie_jax.observe.raycast import Raycaster
 
     visual: dict = {}
@@ -192,21 +194,24 @@ def _visual_gaussians(candidate: Candidate, canon: np.ndarray, frame: assets.Ass
     placed = Raycaster(canon @ frame.pose[:3, :3].T + frame.pose[:3, 3], candidate.faces)
     idx = assets.captured_gaussians(g, q_world, placed, height, config.gaussian_radius, config.base_clearance)
     kept = assets.transform_splats(g.subset(idx), np.linalg.inv(frame.pose))
-    seen_free = None if surface is None else _seen_through(inst, surface, frame.pose, config.fill_min_distance)
+    seen = _seen(inst, placed, surface, frame.pose, config.fill_min_distance)
     fill, fill_info = assets.fill_gaussians(canon, candidate.faces, kept, config.fill_spacing,
-                                            config.fill_min_distance, config.colour_neighbours, inst.id, seen_free)
+                                            config.fill_min_distance, config.colour_neighbours, inst.id, seen)
     visual.update(source="captured", captured=int(kept.num), filled=int(fill.num), fill=fill_info)
     return (GaussianSplatData.join([kept, fill]) if kept.num else fill), visual
 
 
-def _seen_through(inst: InstanceInput, surface, pose: np.ndarray, tolerance: float):
-    """(P, 3) canonical points → (P,) bool: some view of the instance sees the point inside the
-    instance's mask and the scene surface more than ``tolerance`` beyond it."""
+def _seen(inst: InstanceInput, placed, surface, pose: np.ndarray, tolerance: float):
+    """(P, 3) canonical points → (P,) bool: some view of the instance has the point inside the
+    instance's mask on the side of the placed mesh that view sees (``placed``, a ``Raycaster`` of it
+    in the scene: the captured Gaussians are that side's appearance), or, with the scene
+    ``surface``, has it in the image with the surface more than ``tolerance`` beyond it (the camera
+    saw through it: free space, whatever the mask says there)."""
     from phirie_jax.observe.masks import read_label_png
 
-    def seen_free(points: np.ndarray) -> np.ndarray:
+    def seen(points: np.ndarray) -> np.ndarray:
         world = points @ pose[:3, :3].T + pose[:3, 3]
-        free = np.zeros(len(points), bool)
+        out = np.zeros(len(points), bool)
         for camera, path, label in zip(inst.cameras, inst.mask_paths, inst.labels):
             try:
                 mask = read_label_png(path, camera) == label
@@ -214,13 +219,17 @@ def _seen_through(inst: InstanceInput, surface, pose: np.ndarray, tolerance: flo
                 continue
             uv, depth = camera.project(world)
             col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-            ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < mask.shape[1]) & (row < mask.shape[0]) & ~free
+            ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < mask.shape[1]) & (row < mask.shape[0]) & ~out
+            if surface is not None and ok.any():
+                # anywhere in the image: a camera that saw the surface beyond a point saw free space
+                out[np.flatnonzero(ok)] |= surface.seen_through(world[ok], camera, tolerance)
+                ok &= ~out
             ok[ok] &= mask[row[ok], col[ok]]
             if ok.any():
-                free[np.flatnonzero(ok)] |= surface.seen_through(world[ok], camera, tolerance)
-        return free
+                out[np.flatnonzero(ok)] |= placed.faces_camera(world[ok], camera, tolerance)
+        return out
 
-    return seen_free
+    return seen
 
 
 def _entry_for(instance_id: int, reason: str | None = None) -> dict:

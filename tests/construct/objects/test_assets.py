@@ -68,8 +68,8 @@ def test_captured_selection_and_fill_of_the_unseen_bottom():
     assert both.num == kept.num + fill.num
     # where a camera saw through the mesh, no disk: the bottom face "seen through" leaves nothing
     none, info = assets.fill_gaussians(cube.vertices, cube.faces, kept, 0.005, 0.008, 4, 0,
-                                       seen_free=lambda p: p[:, 2] < 0.01)
-    assert none.num == 0 and info["seen_through_fraction"] == pytest.approx(info["unseen_fraction"])
+                                       seen=lambda p: p[:, 2] < 0.01)
+    assert none.num == 0 and info["seen_fraction"] == pytest.approx(info["unseen_fraction"])
 
 
 def test_stale_object_folders_go_and_folders_with_foreign_files_stay(tmp_path):
