@@ -415,9 +415,14 @@ def main() -> None:
         if pb is not None and (args.pybullet_max is None or count <= args.pybullet_max):
             timed.append(("pybullet", "pybullet_rows", lambda: bench_pybullet(pb, bodies, config)))
         for name, key, bench in timed:
-            if name.split("_")[0] in args.skip:
+            if name.split("_")[0] in args.skip or name in result.get("errors", {}):
                 continue
-            row, res = bench()
+            try:
+                row, res = bench()
+            except Exception as err:  # noqa: BLE001 — one backend's failure is recorded, the others go on
+                result.setdefault("errors", {})[name] = f"{type(err).__name__}: {err}"
+                print(json.dumps({name: result["errors"][name]}), file=sys.stderr)
+                continue
             verdicts.setdefault(count, {})[name] = res
             result[key].append(row)
             runs[name] = row
@@ -455,7 +460,13 @@ def main() -> None:
         if pb is not None and "pybullet" not in args.skip:
             others["pybullet"] = lambda: bench_pybullet(pb, hard_bodies, config)
         for name, bench in others.items():
-            _, res = bench()
+            if name in result.get("errors", {}):
+                continue
+            try:
+                _, res = bench()
+            except Exception as err:  # noqa: BLE001
+                result.setdefault("errors", {})[name] = f"{type(err).__name__}: {err}"
+                continue
             block[f"{name}_vs_mujoco_c"] = agreement(hard, ref, res)
         result["agreement_hard"] = block
         _save(result, args.out)
