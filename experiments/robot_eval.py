@@ -4,17 +4,24 @@ For every object of a converted scene that the gripper fits and the arm reaches,
 episodes run as that many MJX worlds at once (``interact.mjx_env.MjxPickPlace``): each world's
 ``reset`` moves the objects within ``--range`` of their place at a random yaw; the scripted
 pick-and-place is planned on the host for each world's initial state (``robot.script``) and
-its controls are stepped in all worlds together (one ``lax.scan`` of the vmapped ``step``).
-The same episodes run in the single MuJoCo C environment, one after another, for the reference
-rate measured in the same run. Compile time (the first batch's call) is reported apart.
+its controls are stepped in all worlds together (one ``lax.scan`` of the batched ``step``:
+vmapped on an accelerator, a loop over worlds inside the program on the CPU, ``over_worlds``).
+The task (object, goal) is data of the state, so one compiled reset and one compiled rollout
+serve every object; their compile time is reported apart, once.
 
-    python -m experiments.robot_eval OUT_DIR [--episodes 8] [--range 0.03] [--out result.json]
+The same episodes run in the single MuJoCo C environment (its full collision model: link
+meshes, finger capsules, CoACD parts), one after another, for the reference rate measured in
+the same run; ``agree`` is the fraction of episodes whose success both give alike.
+
+    python -m experiments.robot_eval OUT_DIR [--episodes 8] [--range 0.03] [--objects 1 4] [--out result.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -25,7 +32,7 @@ import numpy as np
 
 from experiments.report import emit
 from phirie_jax.interact.environment import Environment
-from phirie_jax.interact.mjx_env import MjxPickPlace
+from phirie_jax.interact.mjx_env import MjxPickPlace, over_worlds
 from phirie_jax.interact.robot import script
 from phirie_jax.interact.robot.config import RobotConfig
 from phirie_jax.interact.rollout import free_goal
@@ -33,7 +40,11 @@ from phirie_jax.interact.rollout import free_goal
 ROBOT = RobotConfig(spacing=0.03)   # no images are rendered: the Gaussians only need to exist
 
 
-def plans_for(env: Environment, menv: MjxPickPlace, qpos: np.ndarray, object_id: int, goal) -> np.ndarray:
+def _say(message: str) -> None:
+    print(f"robot_eval: {message}", file=sys.stderr, flush=True)
+
+
+def plans_for(env: Environment, qpos: np.ndarray, object_id: int, goal) -> np.ndarray:
     """(W, T, nu) the script's controls for each world's initial ``qpos`` (W, nq), planned in C."""
     out = []
     for q in qpos:
@@ -45,69 +56,98 @@ def plans_for(env: Environment, menv: MjxPickPlace, qpos: np.ndarray, object_id:
     return np.stack([np.concatenate([p, np.repeat(p[-1:], length - len(p), 0)]) for p in out])
 
 
-def run_c(env: Environment, qpos: np.ndarray, plans: np.ndarray, object_id: int, goal) -> list[bool]:
-    """The same episodes in the single C environment, one after another."""
+def run_c(env: Environment, qpos: np.ndarray, plans: np.ndarray, object_id: int, goal) -> list[dict]:
+    """The same episodes in the single C environment, one after another: each one's outcome."""
     body = env.object(object_id).body_id
-    wins = []
+    outcomes = []
     for q, ctrl in zip(qpos, plans):
         env.reset()
         env.data.qpos[:] = q
         mujoco.mj_forward(env.model, env.data)
         start = env.data.xmat[body].reshape(3, 3).copy()
-        plan = script.Plan(ctrl, script.CONTROL_HZ, (), object_id, np.asarray(goal))
-        script.run_plan(env, plan)
-        wins.append(script.outcome(env, object_id, goal, start)["success"])
-    return wins
+        script.run_plan(env, script.Plan(ctrl, script.CONTROL_HZ, (), object_id, np.asarray(goal)))
+        outcomes.append(script.outcome(env, object_id, goal, start))
+    return outcomes
 
 
-def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int) -> dict:
+def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, objects: list[int] | None = None) -> dict:
     env = Environment.load(out_dir, robot=ROBOT)
     candidates = [o.id for o in env.objects if o.id is not None and o.id in env.robot.placement.reachable
-                  and script.grasp_for(env, o.id).fits]
-    rows = []
+                  and script.grasp_for(env, o.id).fits and (objects is None or o.id in objects)]
+    if not candidates:
+        raise SystemExit(f"{out_dir}: no object both fits the gripper and is within the arm's reach")
+    goals = {}
     for object_id in candidates:
         env.reset()
-        goal = free_goal(env, object_id)
-        menv = MjxPickPlace(env, object_id, goal, placement_range=placement_range)
-        reset = jax.jit(jax.vmap(menv.reset))
+        goals[object_id] = free_goal(env, object_id)
+    menv = MjxPickPlace(env, candidates[0], goals[candidates[0]], placement_range=placement_range)
+    reset = jax.jit(jax.vmap(menv.reset, in_axes=(0, None)))
 
-        @jax.jit
-        def rollout(state, ctrl):  # ctrl (T, W, nu)
-            final, _ = jax.lax.scan(lambda s, a: (jax.vmap(menv.step)(s, a), None), state, ctrl)
-            return final
+    step = over_worlds(menv.step)
 
+    @jax.jit
+    def rollout(state, ctrl):  # ctrl (T, W, nu)
+        final, _ = jax.lax.scan(lambda s, a: (step(s, a), None), state, ctrl)
+        return final
+
+    compiled, compile_s = {}, {"reset": 0.0, "rollout": 0.0}
+    rows = []
+    for object_id in candidates:
+        goal = goals[object_id]
+        task = menv.task(object_id, goal)
         keys = jax.random.split(jax.random.PRNGKey(seed + object_id), episodes)
-        t0 = time.perf_counter()
-        state = jax.block_until_ready(reset(keys))
-        reset_first = time.perf_counter() - t0
+        if "reset" not in compiled:
+            _say("compiling reset")
+            t0 = time.perf_counter()
+            compiled["reset"] = reset.lower(keys, task).compile()
+            compile_s["reset"] += time.perf_counter() - t0
+        state = jax.block_until_ready(compiled["reset"](keys, task))
         qpos = np.asarray(state.data.qpos, np.float64)
         t0 = time.perf_counter()
-        plans = plans_for(env, menv, qpos, object_id, goal)
+        plans = plans_for(env, qpos, object_id, goal)
         plan_s = time.perf_counter() - t0
         ctrl = jnp.asarray(np.swapaxes(plans, 0, 1), jnp.float32)
+        key = ("rollout", ctrl.shape)
+        if key not in compiled:  # the script's segments have fixed durations: one program
+            _say(f"compiling the rollout ({ctrl.shape[0]} ticks × {ctrl.shape[1]} worlds)")
+            t0 = time.perf_counter()
+            compiled[key] = rollout.lower(state, ctrl).compile()
+            compile_s["rollout"] += time.perf_counter() - t0
+        _say(f"object {object_id}: {episodes} episodes in MJX")
         t0 = time.perf_counter()
-        compiled = rollout.lower(state, ctrl).compile()
-        compile_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        final = jax.block_until_ready(compiled(state, ctrl))
+        final = jax.block_until_ready(compiled[key](state, ctrl))
         mjx_s = time.perf_counter() - t0
+        _say(f"object {object_id}: the same episodes in MuJoCo C")
         t0 = time.perf_counter()
-        c_wins = run_c(env, qpos, plans, object_id, goal)
+        c_outcomes = run_c(env, qpos, plans, object_id, goal)
         c_s = time.perf_counter() - t0
         mjx_wins = np.asarray(final.done)
+        c_wins = np.array([o["success"] for o in c_outcomes])
+        steps = plans.shape[1] * menv.substeps * episodes
         rows.append({"object": object_id, "goal": [float(v) for v in goal], "episodes": episodes,
                      "ticks": int(plans.shape[1]), "substeps": menv.substeps,
-                     "mjx_success_rate": float(mjx_wins.mean()), "c_success_rate": float(np.mean(c_wins)),
-                     "agree": float(np.mean(mjx_wins == np.asarray(c_wins))),
-                     "mjx_compile_s": round(compile_s + reset_first, 2), "mjx_run_s": round(mjx_s, 3),
-                     "mjx_episodes_per_s": round(episodes / mjx_s, 3), "plan_s": round(plan_s, 3),
-                     "c_run_s": round(c_s, 3), "c_episodes_per_s": round(episodes / c_s, 3),
-                     "mjx_over_c": round(c_s / mjx_s, 3)})
+                     "mjx_success_rate": float(mjx_wins.mean()), "c_success_rate": float(c_wins.mean()),
+                     "agree": float(np.mean(mjx_wins == c_wins)),
+                     "mjx_distance_m": [round(-float(r), 4) for r in np.asarray(final.reward)],
+                     "c_distance_m": [round(o["distance_m"], 4) for o in c_outcomes],
+                     "mjx_run_s": round(mjx_s, 3), "mjx_episodes_per_s": round(episodes / mjx_s, 4),
+                     "mjx_steps_per_s": round(steps / mjx_s, 1), "plan_s": round(plan_s, 3),
+                     "c_run_s": round(c_s, 3), "c_episodes_per_s": round(episodes / c_s, 4),
+                     "mjx_over_c": round(c_s / mjx_s, 4)})
+    env.reset()
     total = sum(r["episodes"] for r in rows)
     return {"benchmark": "robot_eval", "scene": str(out_dir), "episodes_per_object": episodes,
-            "placement_range_m": placement_range, "objects": rows,
-            "success_rate": (sum(r["mjx_success_rate"] * r["episodes"] for r in rows) / total) if total else None,
-            "device": jax.devices()[0].platform, "jax": jax.__version__, "machine": platform.platform(),
+            "placement_range_m": placement_range, "seed": seed,
+            "mjx_compile_s": {k: round(v, 2) for k, v in compile_s.items()},
+            "objects": rows,
+            "mjx_success_rate": sum(r["mjx_success_rate"] * r["episodes"] for r in rows) / total,
+            "c_success_rate": sum(r["c_success_rate"] * r["episodes"] for r in rows) / total,
+            "mjx_episodes_per_s": round(total / sum(r["mjx_run_s"] for r in rows), 4),
+            "c_episodes_per_s": round(total / sum(r["c_run_s"] for r in rows), 4),
+            "batching": "vmap" if jax.default_backend() != "cpu" else "lax.map (over_worlds)",
+            "device": jax.devices()[0].platform, "device_kind": jax.devices()[0].device_kind,
+            "host_cores": os.cpu_count(), "load_average_at_end": list(os.getloadavg()),
+            "jax": jax.__version__, "mujoco": mujoco.__version__, "machine": platform.platform(),
             "robot": env.robot.record()}
 
 
@@ -117,10 +157,12 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=8, help="episodes (= MJX worlds) per object")
     parser.add_argument("--range", type=float, default=0.03, dest="placement_range",
                         help="m: how far reset moves each object")
+    parser.add_argument("--objects", type=int, nargs="*", default=None,
+                        help="only these object ids (default: every one that fits and is reachable)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
-    emit(evaluate(args.out_dir, args.episodes, args.placement_range, args.seed), args.out)
+    emit(evaluate(args.out_dir, args.episodes, args.placement_range, args.seed, args.objects), args.out)
 
 
 if __name__ == "__main__":

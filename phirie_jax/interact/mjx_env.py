@@ -26,6 +26,13 @@ convex hull (``collision="hull"``, ``interact.mjx_model``), so MJX traces a doze
 functions instead of a hundred. Bodies, joints, actuators, masses and inertias are the same,
 so MuJoCo C runs the same model for reference (the tests do).
 
+Batching worlds: ``jax.vmap(menv.step)`` on an accelerator. On the CPU, ``over_worlds(menv.step)``
+runs the worlds one after another inside the compiled program (``jax.lax.map``): jaxlib 0.10's
+batched LAPACK Cholesky (MJX factors the mass matrix, the Newton Hessian and the implicit
+integrator's matrix) splits its batch over XLA:CPU's intra-op thread pool and blocks waiting for
+the pieces; two such calls at once on a 2-core machine block both threads for good (seen with
+the demo scene's 8 worlds: every thread asleep in ``ParallelBatchMap``).
+
 Rasterization inside jit needs static capacities: they are fitted once on the initial scene
 (``Renderer.fitted_config``) with ``CAPACITY_MARGIN``; ``info["render_overflow"]`` reports a
 frame that needed more.
@@ -74,6 +81,14 @@ def mjx_model(env: Environment, collision: CollisionModel = "hull"):
     merged = [o.body for o in env.objects if o.id is not None and collision == "hull"
               and multi_part(env.model, o.body_id)]
     return hull_collision_spec(spec, env.model, merged).compile()
+
+
+def over_worlds(fn):
+    """``fn`` (one world's ``(state, action)`` → state) applied to a leading world axis: ``jax.vmap``
+    on an accelerator, ``jax.lax.map`` on the CPU (module docstring: the LAPACK deadlock)."""
+    if jax.default_backend() != "cpu":
+        return jax.vmap(fn)
+    return lambda *args: jax.lax.map(lambda one: fn(*one), args)
 
 
 class MjxPickPlace:
