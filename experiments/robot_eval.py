@@ -6,8 +6,8 @@ episodes run as that many MJX worlds at once (``interact.mjx_env.MjxPickPlace``)
 pick-and-place is planned on the host for each world's initial state (``robot.script``) and
 its controls are stepped in all worlds together (one ``lax.scan`` of the batched ``step``:
 vmapped on an accelerator, a loop over worlds inside the program on the CPU, ``over_worlds``).
-The task (object, goal) is data of the state, so one compiled reset and one compiled rollout
-serve every object; their compile time is reported apart, once.
+Each object gets its own MJX model (its exported parts meet the finger pads, the others collide
+through their hulls: ``mjx_env.mjx_model``), so the compile time is reported per object, apart.
 
 The same episodes run in the single MuJoCo C environment (its full collision model: link
 meshes, finger capsules, CoACD parts), one after another, for the reference rate measured in
@@ -70,19 +70,9 @@ def run_c(env: Environment, qpos: np.ndarray, plans: np.ndarray, object_id: int,
     return outcomes
 
 
-def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, objects: list[int] | None = None) -> dict:
-    env = Environment.load(out_dir, robot=ROBOT)
-    candidates = [o.id for o in env.objects if o.id is not None and o.id in env.robot.placement.reachable
-                  and script.grasp_for(env, o.id).fits and (objects is None or o.id in objects)]
-    if not candidates:
-        raise SystemExit(f"{out_dir}: no object both fits the gripper and is within the arm's reach")
-    goals = {}
-    for object_id in candidates:
-        env.reset()
-        goals[object_id] = free_goal(env, object_id)
-    menv = MjxPickPlace(env, candidates[0], goals[candidates[0]], placement_range=placement_range)
-    reset = jax.jit(jax.vmap(menv.reset, in_axes=(0, None)))
-
+def evaluate_object(env: Environment, object_id: int, goal, episodes: int, placement_range: float, seed: int) -> dict:
+    """One object's episodes in MJX worlds (its own model: its parts meet the finger pads) and in C."""
+    menv = MjxPickPlace(env, object_id, goal, placement_range=placement_range)
     step = over_worlds(menv.step)
 
     @jax.jit
@@ -90,55 +80,60 @@ def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, ob
         final, _ = jax.lax.scan(lambda s, a: (step(s, a), None), state, ctrl)
         return final
 
-    compiled, compile_s = {}, {"reset": 0.0, "rollout": 0.0}
+    keys = jax.random.split(jax.random.PRNGKey(seed + object_id), episodes)
+    _say(f"object {object_id}: compiling reset")
+    t0 = time.perf_counter()
+    reset = jax.jit(jax.vmap(menv.reset)).lower(keys).compile()
+    reset_s = time.perf_counter() - t0
+    state = jax.block_until_ready(reset(keys))
+    qpos = np.asarray(state.data.qpos, np.float64)
+    t0 = time.perf_counter()
+    plans = plans_for(env, qpos, object_id, goal)
+    plan_s = time.perf_counter() - t0
+    ctrl = jnp.asarray(np.swapaxes(plans, 0, 1), jnp.float32)
+    _say(f"object {object_id}: compiling the rollout ({ctrl.shape[0]} ticks × {ctrl.shape[1]} worlds)")
+    t0 = time.perf_counter()
+    compiled = rollout.lower(state, ctrl).compile()
+    rollout_s = time.perf_counter() - t0
+    _say(f"object {object_id}: {episodes} episodes in MJX")
+    t0 = time.perf_counter()
+    final = jax.block_until_ready(compiled(state, ctrl))
+    mjx_s = time.perf_counter() - t0
+    _say(f"object {object_id}: the same episodes in MuJoCo C")
+    t0 = time.perf_counter()
+    c_outcomes = run_c(env, qpos, plans, object_id, goal)
+    c_s = time.perf_counter() - t0
+    mjx_wins = np.asarray(final.done)
+    c_wins = np.array([o["success"] for o in c_outcomes])
+    steps = plans.shape[1] * menv.substeps * episodes
+    return {"object": object_id, "goal": [float(v) for v in goal], "episodes": episodes,
+            "ticks": int(plans.shape[1]), "substeps": menv.substeps,
+            "mjx_success_rate": float(mjx_wins.mean()), "c_success_rate": float(c_wins.mean()),
+            "agree": float(np.mean(mjx_wins == c_wins)),
+            "mjx_distance_m": [round(-float(r), 4) for r in np.asarray(final.reward)],
+            "c_distance_m": [round(o["distance_m"], 4) for o in c_outcomes],
+            "mjx_compile_s": {"reset": round(reset_s, 2), "rollout": round(rollout_s, 2)},
+            "mjx_run_s": round(mjx_s, 3), "mjx_episodes_per_s": round(episodes / mjx_s, 4),
+            "mjx_steps_per_s": round(steps / mjx_s, 1), "plan_s": round(plan_s, 3),
+            "c_run_s": round(c_s, 3), "c_episodes_per_s": round(episodes / c_s, 4),
+            "mjx_over_c": round(c_s / mjx_s, 4)}
+
+
+def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, objects: list[int] | None = None) -> dict:
+    env = Environment.load(out_dir, robot=ROBOT)
+    candidates = [o.id for o in env.objects if o.id is not None and o.id in env.robot.placement.reachable
+                  and script.grasp_for(env, o.id).fits and (objects is None or o.id in objects)]
+    if not candidates:
+        raise SystemExit(f"{out_dir}: no object both fits the gripper and is within the arm's reach")
     rows = []
     for object_id in candidates:
-        goal = goals[object_id]
-        task = menv.task(object_id, goal)
-        keys = jax.random.split(jax.random.PRNGKey(seed + object_id), episodes)
-        if "reset" not in compiled:
-            _say("compiling reset")
-            t0 = time.perf_counter()
-            compiled["reset"] = reset.lower(keys, task).compile()
-            compile_s["reset"] += time.perf_counter() - t0
-        state = jax.block_until_ready(compiled["reset"](keys, task))
-        qpos = np.asarray(state.data.qpos, np.float64)
-        t0 = time.perf_counter()
-        plans = plans_for(env, qpos, object_id, goal)
-        plan_s = time.perf_counter() - t0
-        ctrl = jnp.asarray(np.swapaxes(plans, 0, 1), jnp.float32)
-        key = ("rollout", ctrl.shape)
-        if key not in compiled:  # the script's segments have fixed durations: one program
-            _say(f"compiling the rollout ({ctrl.shape[0]} ticks × {ctrl.shape[1]} worlds)")
-            t0 = time.perf_counter()
-            compiled[key] = rollout.lower(state, ctrl).compile()
-            compile_s["rollout"] += time.perf_counter() - t0
-        _say(f"object {object_id}: {episodes} episodes in MJX")
-        t0 = time.perf_counter()
-        final = jax.block_until_ready(compiled[key](state, ctrl))
-        mjx_s = time.perf_counter() - t0
-        _say(f"object {object_id}: the same episodes in MuJoCo C")
-        t0 = time.perf_counter()
-        c_outcomes = run_c(env, qpos, plans, object_id, goal)
-        c_s = time.perf_counter() - t0
-        mjx_wins = np.asarray(final.done)
-        c_wins = np.array([o["success"] for o in c_outcomes])
-        steps = plans.shape[1] * menv.substeps * episodes
-        rows.append({"object": object_id, "goal": [float(v) for v in goal], "episodes": episodes,
-                     "ticks": int(plans.shape[1]), "substeps": menv.substeps,
-                     "mjx_success_rate": float(mjx_wins.mean()), "c_success_rate": float(c_wins.mean()),
-                     "agree": float(np.mean(mjx_wins == c_wins)),
-                     "mjx_distance_m": [round(-float(r), 4) for r in np.asarray(final.reward)],
-                     "c_distance_m": [round(o["distance_m"], 4) for o in c_outcomes],
-                     "mjx_run_s": round(mjx_s, 3), "mjx_episodes_per_s": round(episodes / mjx_s, 4),
-                     "mjx_steps_per_s": round(steps / mjx_s, 1), "plan_s": round(plan_s, 3),
-                     "c_run_s": round(c_s, 3), "c_episodes_per_s": round(episodes / c_s, 4),
-                     "mjx_over_c": round(c_s / mjx_s, 4)})
+        env.reset()
+        goal = free_goal(env, object_id)
+        rows.append(evaluate_object(env, object_id, goal, episodes, placement_range, seed))
     env.reset()
     total = sum(r["episodes"] for r in rows)
     return {"benchmark": "robot_eval", "scene": str(out_dir), "episodes_per_object": episodes,
             "placement_range_m": placement_range, "seed": seed,
-            "mjx_compile_s": {k: round(v, 2) for k, v in compile_s.items()},
             "objects": rows,
             "mjx_success_rate": sum(r["mjx_success_rate"] * r["episodes"] for r in rows) / total,
             "c_success_rate": sum(r["c_success_rate"] * r["episodes"] for r in rows) / total,

@@ -22,9 +22,11 @@ among the scene's objects, ``goal`` (2,)) and the target's start rotation.
 
 The MJX model (``mjx_model``) differs from the single environment's in contacts only: the
 robot collides through one box per finger (``robot.collision``) and each object through one
-convex hull (``collision="hull"``, ``interact.mjx_model``), so MJX traces a dozen collision
-functions instead of a hundred. Bodies, joints, actuators, masses and inertias are the same,
-so MuJoCo C runs the same model for reference (the tests do).
+convex hull (``collision="hull"``, ``interact.mjx_model``), except that ``object_id``'s parts meet
+the pads (a grip on its real shape), so MJX traces a few dozen collision functions instead of
+hundreds. The task's target can change per episode (``task``); the grip is ``object_id``'s.
+Bodies, joints, actuators, masses and inertias are the same, so MuJoCo C runs the same model
+for reference (the tests do).
 
 Batching worlds: ``jax.vmap(menv.step)`` on an accelerator. On the CPU, ``over_worlds(menv.step)``
 runs the worlds one after another inside the compiled program (``jax.lax.map``): jaxlib 0.10's
@@ -52,7 +54,7 @@ from kernels.pytree import pytree_dataclass
 from phirie_jax.interact.environment import Environment, compose_scene
 from phirie_jax.interact.mjx_model import CollisionModel, body_frame_vertices, hull_collision_spec, multi_part
 from phirie_jax.interact.robot import script
-from phirie_jax.interact.robot.collision import pad_collision_spec
+from phirie_jax.interact.robot.collision import grip_parts_spec, pad_collision_spec, pad_names
 
 CANDIDATES = 32            # placement draws per object at reset
 CAPACITY_MARGIN = 2        # × the tile intersections the initial scene needed, per camera
@@ -69,10 +71,11 @@ class State:
                                # render_overflow ()
 
 
-def mjx_model(env: Environment, collision: CollisionModel = "hull"):
+def mjx_model(env: Environment, collision: CollisionModel = "hull", grasped: int | None = None):
     """The ``mujoco.MjModel`` batched worlds of ``env`` run on MJX (module docstring): the robot
     (when there is one) collides through its finger pads, each object through its hull
-    (``"hull"``) or its exported parts (``"parts"``)."""
+    (``"hull"``) or its exported parts (``"parts"``); the ``grasped`` object's parts, not its
+    hull, meet the pads (``robot.collision.grip_parts_spec``)."""
     if collision not in ("hull", "parts"):
         raise ValueError(f"collision {collision!r} (expected 'hull' or 'parts')")
     spec = env.spec()
@@ -80,7 +83,10 @@ def mjx_model(env: Environment, collision: CollisionModel = "hull"):
         spec = pad_collision_spec(spec, env.model, env.robot)
     merged = [o.body for o in env.objects if o.id is not None and collision == "hull"
               and multi_part(env.model, o.body_id)]
-    return hull_collision_spec(spec, env.model, merged).compile()
+    spec = hull_collision_spec(spec, env.model, merged)
+    if grasped is not None and env.robot is not None and env.object(grasped).body in merged:
+        spec = grip_parts_spec(spec, env.model, env.object(grasped).body, pad_names(env.model, env.robot))
+    return spec.compile()
 
 
 def over_worlds(fn):
@@ -103,7 +109,7 @@ class MjxPickPlace:
         if env.robot is None:
             raise ValueError("MjxPickPlace needs an environment with a robot (Environment.load(..., robot=...))")
         self.env = env
-        self.mj_model = mjx_model(env, collision)
+        self.mj_model = mjx_model(env, collision, grasped=object_id)
         self.model = mjx.put_model(self.mj_model)
         data = mujoco.MjData(self.mj_model)
         env.robot.set_home(self.mj_model, data)

@@ -1,6 +1,6 @@
 """The functional MJX environment: its model collides through finger pads and object hulls; 8
-worlds stepped by one jitted, vmapped program equal MuJoCo C on the same model for the same
-actions, and their images the single environment's renders of the same states.
+worlds reset and stepped by jitted, batched programs equal MuJoCo C on the same model for the
+same actions, and their images the single environment's renders of the same states.
 
 The stepping test is slow: MJX compiles the robot-and-objects step for about a minute of CPU."""
 
@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from phirie_jax.interact.environment import Environment
-from phirie_jax.interact.mjx_env import MjxPickPlace, mjx_model
-from phirie_jax.interact.robot.collision import PAD_SUFFIX, colliding_geoms, finger_bodies
+from phirie_jax.interact.mjx_env import MjxPickPlace, mjx_model, over_worlds
+from phirie_jax.interact.mjx_model import hull_collision_spec
+from phirie_jax.interact.robot.collision import PAD_SUFFIX, colliding_geoms, finger_bodies, grip_parts_spec
 from phirie_jax.interact.robot.config import RobotConfig
 
 WORLDS, TICKS = 8, 15
@@ -70,6 +71,48 @@ def _capsule_surface(model, geom: int, samples: int = 2000) -> np.ndarray:
     return (ends[:, None, :] + model.geom_size[geom][0] * directions[None]).reshape(-1, 3)
 
 
+TWO_CUBES = """<mujoco>
+  <asset>
+    <mesh name="left" vertex="-0.07 -0.01 0  -0.05 -0.01 0  -0.07 0.01 0  -0.05 0.01 0
+                               -0.07 -0.01 0.02  -0.05 -0.01 0.02  -0.07 0.01 0.02  -0.05 0.01 0.02"/>
+    <mesh name="right" vertex="0.05 -0.01 0  0.07 -0.01 0  0.05 0.01 0  0.07 0.01 0
+                                0.05 -0.01 0.02  0.07 -0.01 0.02  0.05 0.01 0.02  0.07 0.01 0.02"/>
+  </asset>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1"/>
+    <geom name="pad" type="box" size="0.005 0.005 0.005" pos="PAD" contype="1" conaffinity="0"/>
+    <body name="object_9" pos="0 0 0">
+      <freejoint/>
+      <geom name="part_0" type="mesh" mesh="left"/>
+      <geom name="part_1" type="mesh" mesh="right"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def _touching(pad_at: str, grip: bool) -> set[tuple[str, str]]:
+    """Pairs of geom names in contact for the two-cube object with its hull, the pad at ``pad_at``."""
+    spec = mujoco.MjSpec.from_string(TWO_CUBES.replace("PAD", pad_at))
+    model = spec.compile()
+    hull_collision_spec(spec, model, ["object_9"])
+    if grip:
+        grip_parts_spec(spec, model, "object_9", ["pad"])
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return {tuple(sorted((model.geom(c.geom1).name, model.geom(c.geom2).name))) for c in data.contact}
+
+
+def test_the_grasped_object_meets_the_pads_through_its_parts_and_the_rest_through_its_hull():
+    between = "0 0 0.01"  # inside the hull, in the gap between the two cubes
+    assert ("object_9_hull", "pad") in _touching(between, grip=False)
+    assert not any("pad" in pair for pair in _touching(between, grip=True)), "the gap is free"
+    inside = "-0.06 0 0.01"
+    assert ("pad", "part_0") in _touching(inside, grip=True)
+    assert ("floor", "object_9_hull") in _touching(inside, grip=True), "it still rests on its hull"
+    assert not any("part" in a or "part" in b for a, b in _touching(inside, grip=True) if "pad" not in (a, b))
+
+
 @pytest.mark.slow
 def test_eight_worlds_match_mujoco_c_on_the_same_model(env):
     menv = MjxPickPlace(env, 1, (-0.2, 0.06), cameras=(0, "wrist"), width=32, background=BACKGROUND)
@@ -81,7 +124,10 @@ def test_eight_worlds_match_mujoco_c_on_the_same_model(env):
     actions = np.repeat(np.asarray(env.data.ctrl)[None, None], WORLDS, 0).repeat(TICKS, 1)
     actions[..., robot.arm_actuators] += rng.uniform(-0.3, 0.3, (WORLDS, 1, len(robot.arm_actuators)))
     actions[..., robot.gripper_actuators] = rng.uniform(0.0, 0.04, (WORLDS, 1, 1))
-    step = jax.jit(jax.vmap(menv.step))
+    first = jnp.asarray(actions[:, 0], jnp.float32)
+    traced = jax.eval_shape(jax.vmap(menv.step), states, first)  # vmap-able (run on accelerators)
+    assert traced.data.qpos.shape == states.data.qpos.shape
+    step = jax.jit(over_worlds(menv.step))  # on the CPU: lax.map (mjx_env: jaxlib's LAPACK deadlock)
     for t in range(TICKS):
         states = step(states, jnp.asarray(actions[:, t], jnp.float32))
     assert not bool(np.any(states.info["render_overflow"]))

@@ -16,6 +16,13 @@ The MJX model keeps what a pick-and-place needs, as MJX users do:
   bits (``PAD_CONDIM`` for the contact dimension): the pads grip the objects and rest on the
   support as the capsules do.
 
+With objects colliding through one convex hull each (``interact.mjx_model``), the object being
+grasped is the exception (``grip_parts_spec``): a hull closes a bottle's neck into a cone, which
+closing fingers squeeze the bottle down and out of (the demo scene's bottle missed its goal by
+6–9 cm in every such episode, in MuJoCo C as in MJX). Its exported parts meet the finger pads
+and nothing else (contact bit ``GRIP_BIT``), its hull meets everything but the pads: a handful of
+extra collision functions (one per part) for a grip on the real shape.
+
 The single MuJoCo C environment keeps the full model; ``experiments/robot_eval.py`` reports how
 often the two agree on the scripted task's outcome.
 """
@@ -27,6 +34,7 @@ import numpy as np
 from phirie_jax.interact.robot.appearance import geom_mesh
 
 PAD_SUFFIX = "_pad"
+GRIP_BIT = 2              # the contact bit only the finger pads and the grasped object's parts share
 # The pads' contact dimension: sliding friction only, as the objects' contacts with the support.
 # Two flat pads touch an object at up to four points each, which resists twisting without the
 # capsules' torsional and rolling friction (condim 6); and pad–object contacts then share one
@@ -109,4 +117,31 @@ def pad_collision_spec(spec, model, robot):
             solimp=model.geom_solimp[first].tolist(), condim=PAD_CONDIM,
             contype=int(model.geom_contype[first]), conaffinity=int(model.geom_conaffinity[first]),
             margin=0.0, gap=0.0, group=3, rgba=[0, 0, 0, 0])
+    return spec
+
+
+def pad_names(model, robot) -> list[str]:
+    """Names of the finger pads ``pad_collision_spec`` adds, for the fingers that have them."""
+    return [model.body(b).name + PAD_SUFFIX for b in finger_bodies(model, robot) if colliding_geoms(model, b)]
+
+
+def grip_parts_spec(spec, model, body: str, pads: list[str]):
+    """Edit ``spec`` — ``model``'s source with ``body``'s hull added (``mjx_model.hull_collision_spec``)
+    and the finger ``pads`` — so the pads meet ``body``'s exported parts, and its hull meets
+    everything but the pads (module docstring), in place; returns it."""
+    import mujoco
+
+    from phirie_jax.interact.mjx_model import HULL_SUFFIX
+
+    body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    parts = set(colliding_geoms(model, body_id))
+    originals = [g for g in range(model.ngeom) if model.geom_bodyid[g] == body_id]  # the spec's order
+    for geom in spec.body(body).geoms:
+        if geom.name == body + HULL_SUFFIX:
+            geom.conaffinity = 0                      # its contype still meets support, floor, objects
+    for index, geom in zip(originals, spec.body(body).geoms):
+        if index in parts:
+            geom.contype, geom.conaffinity = 0, GRIP_BIT
+    for name in pads:
+        spec.geom(name).contype |= GRIP_BIT
     return spec
