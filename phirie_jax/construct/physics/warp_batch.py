@@ -138,6 +138,7 @@ class WarpDropBatch:
     config: DropTestConfig
     early_exit: bool
     device: str
+    graph_steps: int = GRAPH_STEPS
     settle_graph: object = None
     free_graph: object = None
 
@@ -179,7 +180,7 @@ class WarpDropBatch:
                 self._phase(free)
                 step()
                 with wp.ScopedCapture() as capture:
-                    for _ in range(GRAPH_STEPS):
+                    for _ in range(self.graph_steps):
                         step()
                 graphs.append(capture.graph)
             self.settle_graph, self.free_graph = graphs
@@ -193,18 +194,20 @@ class WarpDropBatch:
         with wp.ScopedDevice(self.device):
             self._reset()
             self._phase(False)
-            _repeat(wp, self.settle_graph, self.config.settle_steps, settle)
+            _repeat(wp, self.settle_graph, self.config.settle_steps, settle, self.graph_steps)
             settled = self.data.qpos.numpy().astype(np.float64)
             self._phase(True)
-            steps = _free_phase(wp, self.free_graph, self.data, self.config.free_steps, self.early_exit, free)
+            steps = _free_phase(wp, self.free_graph, self.data, self.config.free_steps, self.early_exit, free,
+                                self.graph_steps)
             wp.synchronize()
             return WarpBatchResult(settled, self.data.qpos.numpy().astype(np.float64), steps, self.device)
 
 
 def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
-            device: str | None = None) -> WarpDropBatch:
+            device: str | None = None, graph_steps: int = GRAPH_STEPS, options: dict | None = None) -> WarpDropBatch:
     """The batch of ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7), on
-    ``device`` (default: the first GPU, else the CPU), its graphs captured."""
+    ``device`` (default: the first GPU, else the CPU), its graphs captured. graph_steps: protocol
+    steps per captured graph; options: MuJoCo Warp ``Option`` fields to override (benchmarks)."""
     ok, why = available()
     if not ok:
         raise RuntimeError(why)
@@ -218,10 +221,13 @@ def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestCon
         model = _put(bank, _per_world(bank, models, mesh_ids), n)
         # the protocol runs its own iteration counts on purpose: no overflow notices
         model.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
+        for name, value in (options or {}).items():
+            setattr(model.opt, name, value)
         parts = bank.ngeom - 1
         data = mjw.make_data(bank, nworld=n, nconmax=CONTACTS_PER_PART * parts,
                              njmax=CONTACTS_PER_PART * parts * 4, naconmax=n * CONTACTS_PER_PART * parts)
-    batch = WarpDropBatch(model, data, np.asarray(qpos0, np.float64).reshape(n, -1), config, early_exit, str(device))
+    batch = WarpDropBatch(model, data, np.asarray(qpos0, np.float64).reshape(n, -1), config, early_exit, str(device),
+                          graph_steps)
     batch.capture()
     return batch
 
@@ -232,26 +238,26 @@ def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig,
     return prepare(models, qpos0, config, early_exit, device).simulate()
 
 
-def _repeat(wp, graph, steps: int, step) -> None:
-    """``steps`` protocol steps: whole graphs, then the remainder one by one."""
+def _repeat(wp, graph, steps: int, step, graph_steps: int = GRAPH_STEPS) -> None:
+    """``steps`` protocol steps: whole graphs of ``graph_steps``, then the remainder one by one."""
     done = 0
     if graph is not None:
-        for _ in range(steps // GRAPH_STEPS):
+        for _ in range(steps // graph_steps):
             wp.capture_launch(graph)
-        done = steps // GRAPH_STEPS * GRAPH_STEPS
+        done = steps // graph_steps * graph_steps
     for _ in range(done, steps):
         step()
 
 
-def _free_phase(wp, graph, data, steps: int, early_exit: bool, step) -> int:
+def _free_phase(wp, graph, data, steps: int, early_exit: bool, step, graph_steps: int = GRAPH_STEPS) -> int:
     """The free phase; with ``early_exit`` it ends once every world sleeps. Returns the steps run."""
     if not early_exit:
-        _repeat(wp, graph, steps, step)
+        _repeat(wp, graph, steps, step, graph_steps)
         return steps
     done = 0
     while done < steps:
-        chunk = min(GRAPH_STEPS, steps - done)
-        if graph is not None and chunk == GRAPH_STEPS:
+        chunk = min(graph_steps, steps - done)
+        if graph is not None and chunk == graph_steps:
             wp.capture_launch(graph)
         else:
             for _ in range(chunk):
