@@ -12,6 +12,10 @@ descendants is summed from /proc (CoACD workers and Open3D included), and the pe
 the manifest's stage timings. Issue 14's targets on 2 cores: a 400K-Gaussian, 50-photo capture
 converts in ≤ 10 minutes with a peak ≤ 6 GB; 5 M Gaussians convert on 24 GB.
 
+``--resume STAGE ...`` runs only those stages (and the frame) again on the output of an earlier
+run that failed after its observation: its wall time and peak memory are the resumed run's, the
+manifest keeps the earlier stages' times.
+
 ``--densify K`` stands in for a capture trained to millions of Gaussians: every Gaussian is
 replaced by K children (``densified``), so the scene and its images stay those of the preset.
 """
@@ -96,6 +100,9 @@ def main() -> None:
     parser.add_argument("--sample-s", type=float, default=0.5)
     parser.add_argument("--densify", type=int, default=1, help="children per Gaussian (5 M from the large preset: 11)")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--resume", nargs="+", default=None, metavar="STAGE",
+                        help="run only these stages (and the frame) on the existing capture and output of an "
+                             "earlier run whose later stages failed; its manifest keeps the earlier stages' times")
     args = parser.parse_args()
 
     from experiments.discovery_eval import user_capture
@@ -104,16 +111,22 @@ def main() -> None:
     from phirie_jax.synthetic.fitted import ensure_synthesized
 
     scene = ensure_synthesized(args.scene, args.preset, args.seed)
-    capture = user_capture(scene, args.work / "capture", LEFT_OUT)
-    if args.densify > 1:
-        from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
-
-        (capture / "point_cloud.ply").unlink()
-        write_gaussian_ply(capture / "point_cloud.ply",
-                           densified(read_gaussian_ply(scene / "point_cloud.ply"), args.densify))
     out = args.work / "out"
-    shutil.rmtree(out, ignore_errors=True)
-    command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto"]
+    if args.resume:
+        capture = args.work / "capture"
+        command = [sys.executable, "-c", "import sys; from phirie_jax.pipeline import run_convert; "
+                   "run_convert(sys.argv[1], sys.argv[2], masks='auto', stages=tuple(sys.argv[3:]))",
+                   str(capture), str(out), *args.resume]
+    else:
+        capture = user_capture(scene, args.work / "capture", LEFT_OUT)
+        if args.densify > 1:
+            from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
+
+            (capture / "point_cloud.ply").unlink()
+            write_gaussian_ply(capture / "point_cloud.ply",
+                               densified(read_gaussian_ply(scene / "point_cloud.ply"), args.densify))
+        shutil.rmtree(out, ignore_errors=True)
+        command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto"]
     start, peak = time.perf_counter(), 0
     child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     log: list[str] = []
@@ -130,7 +143,7 @@ def main() -> None:
     transforms = json.loads((scene / "transforms.json").read_text())
     frame = transforms["frames"][0]
     emit({"preset": args.preset, "seed": args.seed, "gaussians": ply_element_counts(capture / "point_cloud.ply")["vertex"],
-          "densify": args.densify,
+          "densify": args.densify, "resumed_stages": args.resume,
           "views": len(transforms["frames"]),
           "image": [frame.get("w", transforms.get("w")), frame.get("h", transforms.get("h"))],
           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
