@@ -36,7 +36,7 @@ TILE_PX = Range(16, bound="one 16-pixel tile")  # the smallest crop the tiled ra
 
 @dataclasses.dataclass(frozen=True)
 class RemovalConfig:
-    """Removal, R_i = R_obs ∪ R_asset ∪ R_mask ∪ R_reach (``construct.background.removal``).
+    """Removal, R_i = R_obs ∪ R_asset ∪ R_mask ∪ R_enclosed ∪ R_reach (``construct.background.removal``).
 
     Attributes:
         obs_radius: Gaussians within this of the observed surface Q_i (paper: 3 cm).
@@ -47,6 +47,10 @@ class RemovalConfig:
         mask_views: ours — the instance's largest masks consulted (each is one crop render).
         occlusion_tolerance: ours — a centre more than this behind the depth rendered at its pixel is
             occluded in that view and does not vote (the paper's code has no occlusion test; notes).
+        enclosed_directions: ours — R_enclosed: a Gaussian is walled in by the placed asset when a
+            horizontal ray meets it in each of this many evenly spread directions (the inside of an
+            open container); 0 turns it off. ``enclosed_lift``: the rays also leave from this far (and
+            half as far) above the centre, so a floor at the support's height finds the walls.
         reach_sigmas / reach_depth: ours — R_reach: a Gaussian whose longest axis, ``reach_sigmas`` σ
             from its centre, ends more than ``reach_depth`` inside the placed asset (an optimizer's
             needle across the object/support contact, its centre beyond the radii) is removed too:
@@ -60,6 +64,8 @@ class RemovalConfig:
     bounds_margin: float = 0.02
     mask_views: int = 8
     occlusion_tolerance: float = 0.01
+    enclosed_directions: int = 8
+    enclosed_lift: float = 0.01
     reach_sigmas: float = 2.0
     reach_depth: float = 0.005
     statuses: tuple[str, ...] = ("accepted",)
@@ -68,7 +74,7 @@ class RemovalConfig:
         check_ranges(self, {
             "obs_radius": NON_NEGATIVE, "asset_radius": NON_NEGATIVE, "mask_votes": AT_LEAST_ONE,
             "bounds_margin": NON_NEGATIVE, "mask_views": AT_LEAST_ONE, "occlusion_tolerance": NON_NEGATIVE,
-            "reach_sigmas": NON_NEGATIVE, "reach_depth": NON_NEGATIVE})
+            "enclosed_directions": NON_NEGATIVE, "enclosed_lift": NON_NEGATIVE, "reach_sigmas": NON_NEGATIVE, "reach_depth": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Source-Gaussian removal coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask ∪ R_reach.
+"""Source-Gaussian removal coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask ∪ R_enclosed ∪ R_reach.
 
 For each object the object stage made (status in ``RemovalConfig.statuses``):
 
@@ -17,6 +17,10 @@ For each object the object stage made (status in ``RemovalConfig.statuses``):
   Gaussians inside the expanded bounds only: a mask pixel is the *first* hit's label, so what
   is in front of the instance there is the instance itself, which lies inside its bounds.
 
+- R_enclosed (ours): the remaining Gaussians of the expanded bounds walled in by the placed asset
+  (horizontal rays in 8 directions all meet it, from the centre or up to 1 cm above it): the inside of an open container — a mug's inner
+  floor — is neither near its outer surface nor inside its volume, and stayed as a coloured disc
+  where the mug stood;
 - R_reach (ours): the remaining Gaussians of the expanded bounds whose longest axis, 2 σ either
   side of the centre, ends more than 5 mm inside the placed asset: optimizer-shaped needles that
   cross the object/support contact with their centre on the support, hidden in the capture where
@@ -126,6 +130,31 @@ def reaching_into(data: GaussianSplatData, candidates: np.ndarray, vertices: np.
     return candidates[ends.any(axis=0)]
 
 
+def enclosed_by(means: np.ndarray, candidates: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                up: np.ndarray, directions: int, lift: float) -> np.ndarray:
+    """Indices among ``candidates`` (K,) walled in by the closed mesh: in every one of
+    ``directions`` evenly spread horizontal directions (⊥ ``up``), a ray from the centre, or from
+    the centre raised by ``lift`` / 2 or ``lift``, meets the mesh (R_enclosed: the inside of an open
+    container, neither near its outer surface nor inside its volume; the raised rays reach the
+    walls over a floor at the support's height, below a rounded foot)."""
+    from phirie_jax.geometry import rotation_to_z
+    from phirie_jax.observe.raycast import Raycaster
+
+    if len(candidates) == 0 or len(faces) == 0:
+        return np.zeros(0, np.int64)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    to_world = rotation_to_z(up).T        # gravity frame → world
+    angles = 2 * np.pi * np.arange(directions) / directions
+    rays = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(directions)]) @ to_world.T
+    caster = Raycaster(vertices, faces)
+    walled = np.zeros((len(candidates), directions), bool)
+    for height in (0.0, 0.5 * lift, lift):
+        origins = np.repeat(means[candidates] + height * up, directions, axis=0)
+        hits = caster.cast(origins, np.tile(rays, (len(candidates), 1)))
+        walled |= np.isfinite(hits.depth).reshape(len(candidates), directions)
+    return candidates[walled.all(axis=1)]
+
+
 def read_mask(path: Path) -> np.ndarray:
     import cv2
 
@@ -227,7 +256,7 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
 
 
 def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
-                 config: BackgroundConfig, crops: CropRenderer) -> tuple[list[np.ndarray], list[dict]]:
+                 config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0)) -> tuple[list[np.ndarray], list[dict]]:
     """R_i for every object (sorted unique indices into ``data``) and per-object records with the
     counts of R_obs, R_asset, R_mask and their union."""
     means = data.means.astype(np.float64)
@@ -238,13 +267,19 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
         r_asset = (near_surface(means, o.mesh[0], o.mesh[1], config.removal.asset_radius)
                    if o.mesh is not None else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
-        r_reach = np.zeros(0, np.int64)
-        if o.mesh is not None and config.removal.reach_sigmas > 0:
+        r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if o.mesh is not None:
             rest = np.setdiff1d(_in_box(means, o.bounds(config.removal.bounds_margin)), union, assume_unique=True)
-            r_reach = reaching_into(data, rest, o.mesh[0], o.mesh[1], config.removal.reach_sigmas,
-                                    config.removal.reach_depth)
-            union = np.union1d(union, r_reach)
+            if config.removal.enclosed_directions > 0:
+                r_enclosed = enclosed_by(means, rest, o.mesh[0], o.mesh[1], np.asarray(up, np.float64),
+                                         config.removal.enclosed_directions, config.removal.enclosed_lift)
+                rest = np.setdiff1d(rest, r_enclosed, assume_unique=True)
+            if config.removal.reach_sigmas > 0:
+                r_reach = reaching_into(data, rest, o.mesh[0], o.mesh[1], config.removal.reach_sigmas,
+                                        config.removal.reach_depth)
+            union = np.union1d(union, np.union1d(r_enclosed, r_reach))
         sets.append(union)
-        records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask), "reach": len(r_reach),
+        records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask), "enclosed": len(r_enclosed),
+                        "reach": len(r_reach),
                         "union": len(union), "asset_surface": o.mesh is not None, "mask_pass": mask_record})
     return sets, records

@@ -167,7 +167,7 @@ def _load_inputs(scene_dir: str | Path, out_dir: Path, manifest: Manifest, objec
 
 def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.ndarray]:
     """R_i of every object being removed (indices into G0) and (N,) bool: in any R_i."""
-    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops)
+    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops, run.up)
                              if run.inputs else ([], []))
     removed = np.zeros(run.data.num, bool)
     for o, r_i, rec in zip(run.inputs, sets, removal_records):

@@ -56,3 +56,21 @@ def test_needles_reaching_into_the_asset_across_the_contact():
     data = GaussianSplatData.join([data.subset(np.arange(2)), short, flat], like=data)
     taken = reaching_into(data, np.arange(data.num), box.vertices, box.faces, sigmas=2.0, depth=0.005)
     np.testing.assert_array_equal(taken, [0])
+
+
+def test_the_inside_of_an_open_container_is_walled_in():
+    """R_enclosed: the floor of a ring-walled cup (a tube standing on z = 0, its foot at the floor's
+    height) is walled in; a point outside it, or between two parallel walls (a handle's gap), is not."""
+    from phirie_jax.construct.background.removal import enclosed_by
+
+    tube = trimesh.creation.annulus(r_min=0.035, r_max=0.04, height=0.1)
+    tube.apply_translation([0, 0, 0.05])
+    walls = trimesh.util.concatenate([trimesh.creation.box([0.1, 0.01, 0.1]).apply_translation([0.3, 0.02, 0.05]),
+                                      trimesh.creation.box([0.1, 0.01, 0.1]).apply_translation([0.3, -0.02, 0.05])])
+    mesh = trimesh.util.concatenate([tube, walls])
+    means = np.array([[0.0, 0.0, 0.0], [0.01, -0.01, 0.03], [0.1, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.0, 0.2]])
+    walled = enclosed_by(means, np.arange(len(means)), mesh.vertices, mesh.faces, np.array([0, 0, 1.0]), 8, 0.01)
+    np.testing.assert_array_equal(walled, [0, 1])
+    long_up = np.array([0.0, 0.0, 2.0])                  # up of any length
+    np.testing.assert_array_equal(enclosed_by(means, np.arange(len(means)), mesh.vertices, mesh.faces, long_up, 8, 0.01),
+                                  [0, 1])
