@@ -111,7 +111,7 @@ def _print_converted(facts: dict) -> None:
 
 
 def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
-          preset: Literal["tiny", "default", "large"] = "default", fitted: bool = False,
+          preset: Literal["tiny", "default", "large", "crowded"] = "default", fitted: bool = False,
           fit_steps: int | None = None) -> None:
     """Write a procedural tabletop scene with ground truth, laid out like a real capture
     (INRIA PLY, transforms.json and COLMAP text, images, 16-bit instance masks, surface mesh, gt/).
@@ -119,7 +119,7 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
     Args:
         out: output scene folder.
         seed: random seed; the same seed and preset give the same files.
-        preset: tiny (tests, seconds), default (the demo), large (benchmarks).
+        preset: tiny (tests, seconds), default (the demo), large (benchmarks), crowded (30 objects on a 2 m table).
         fitted: replace the ideal Gaussians with a 3DGS fit of the rendered images (random
             initialization, Adam, densification), like a real capture's; the ideal set is kept in
             gt/ideal/ and how it was fitted in gt/fit.json.

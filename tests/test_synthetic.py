@@ -106,3 +106,18 @@ def test_cameras_see_the_table(tiny):
         assert depth[0] > 0.5
         assert 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height
     assert json.dumps([c.name for c in tiny.cameras])
+
+
+def test_crowded_preset_places_thirty_objects_apart_on_its_table():
+    from phirie_jax.synthetic import shapes
+    from phirie_jax.synthetic.scene import PLACEMENT_GAP, place_objects
+
+    config = PRESETS["crowded"]
+    furniture = shapes.make_furniture(floor_size=config.floor_size, top=config.table_top)
+    objects = place_objects(np.random.default_rng(5), config, furniture, 5)
+    assert len(objects) == 30 and len({o.id for o in objects}) == 30
+    centres = np.array([o.pose[:2, 3] for o in objects])
+    radii = np.array([np.linalg.norm(o.shape.mesh.vertices[:, :2], axis=1).max() for o in objects])
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - radii[:, None] - radii[None]
+    assert gaps[~np.eye(30, dtype=bool)].min() > PLACEMENT_GAP - 1e-9
+    assert np.all(np.abs(centres) + radii[:, None] <= furniture.top_extent / 2)

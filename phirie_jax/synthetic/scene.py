@@ -55,6 +55,7 @@ class SynthConfig:
     table_spacing: float = 0.006
     floor_spacing: float = 0.02
     floor_size: float = 3.0
+    table_top: tuple[float, float] = (1.2, 0.8)  # tabletop size in x, y (metres)
     floaters: int = 40
     boundary_blobs: int = 24  # per object
     background_rgb: tuple[float, float, float] = (0.62, 0.66, 0.72)
@@ -67,6 +68,10 @@ PRESETS = {
     "default": SynthConfig(),
     "large": SynthConfig(num_cameras=60, width=640, height=480, object_spacing=0.0015,
                          table_spacing=0.003, floor_spacing=0.01, floaters=120, boundary_blobs=48),
+    # a crowded scene: 30 objects (categories repeat) on a 2 m × 1.4 m table, cameras further out
+    "crowded": SynthConfig(num_objects=(30, 30), num_cameras=48, rings=((2.0, 1.6), (1.6, 2.1), (2.4, 1.3)),
+                           width=480, height=360, floor_size=5.0, table_top=(2.0, 1.4), floaters=80,
+                           boundary_blobs=12),
 }
 
 
@@ -85,7 +90,8 @@ class PlacedObject:
 def place_objects(rng, config: SynthConfig, furniture: shapes.Furniture, seed: int) -> list[PlacedObject]:
     """Non-overlapping random placements and yaws on the tabletop (rejection sampling)."""
     count = int(rng.integers(config.num_objects[0], config.num_objects[1] + 1))
-    categories = list(rng.permutation(shapes.CATEGORIES))[:count]
+    categories = (list(rng.permutation(shapes.CATEGORIES))[:count] if count <= len(shapes.CATEGORIES)
+                  else list(rng.choice(shapes.CATEGORIES, count)))   # more objects than categories: repeats
     placed: list[tuple[np.ndarray, float]] = []
     objects = []
     half = furniture.top_extent / 2 - TABLE_MARGIN
@@ -166,7 +172,7 @@ def build_scene(preset: str = "default", seed: int = 0) -> SyntheticScene:
         raise ValueError(f"unknown preset {preset!r} (expected one of {sorted(PRESETS)})")
     config = PRESETS[preset]
     rng = np.random.default_rng(seed)
-    furniture = shapes.make_furniture(floor_size=config.floor_size)
+    furniture = shapes.make_furniture(floor_size=config.floor_size, top=config.table_top)
     objects = place_objects(rng, config, furniture, seed)
 
     parts, hidden_parts = [], []
