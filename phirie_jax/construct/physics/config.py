@@ -42,7 +42,8 @@ class DropTestConfig:
         min_final_height: ... and its final height above the plane is at least this (paper: −5 cm).
         backend: "mjx" (one vmapped program per batch), "warp" (MuJoCo Warp: one world per candidate,
             CUDA graphs; ``pip install phirie_jax[warp]``), "mujoco" (the C library, the reference) or
-            "auto" (MJX with an accelerator, else C: faster on a CPU; physics_notes.md "Backend").
+            "auto" (C on a CPU and for batches under ``droptest.AUTO_BATCH_MIN`` candidates, where no
+            program compile pays; larger ones Warp if installed on a GPU, else MJX).
         solver / jacobian: MuJoCo's solver ("newton" or "cg") and mass-matrix layout ("dense" or
             "sparse"): Newton/dense is fastest for the same verdicts (physics_notes.md "Solver").
         solver_iterations / line_search_iterations / tolerance: ours, the fewest that keep the

@@ -170,19 +170,29 @@ def verdict(model: mujoco.MjModel, qpos0, settled, final, config: DropTestConfig
                       _tilt_deg(qpos0[3:7], final[3:7]), backend)
 
 
-def resolve_backend(backend: str) -> str:
-    """"auto" → "mjx" when JAX has an accelerator, else "mujoco" (measured faster on a CPU)."""
+AUTO_BATCH_MIN = 1024  # "auto" batches on an accelerator from this many candidates (bench_droptest, H100)
+
+
+def resolve_backend(backend: str, candidates: int | None = None) -> str:
+    """"auto": the C library below ``AUTO_BATCH_MIN`` candidates or without an accelerator (no
+    compile: 7.8 s sequential for 1024 on the H100 host, where MJX compiles 12 s and Warp builds its
+    kernels for 54 s on a fresh machine); from there MuJoCo Warp when installed on a CUDA device,
+    else MJX. ``candidates`` None (a record of the backend's kind): as for a large batch."""
     if backend != "auto":
         return backend
     import jax
 
-    return "mjx" if jax.default_backend() != "cpu" else "mujoco"
+    if jax.default_backend() == "cpu" or (candidates is not None and candidates < AUTO_BATCH_MIN):
+        return "mujoco"
+    from phirie_jax.construct.physics import warp_batch
+
+    return "warp" if warp_batch.available()[0] and jax.default_backend() == "gpu" else "mjx"
 
 
 def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfig(),
               backend: str | None = None) -> list[DropResult]:
-    """Drop-test every body; MJX runs each part bucket as one batched program."""
-    backend = resolve_backend(backend or config.backend)
+    """Drop-test every body; MJX or Warp run each part bucket as one batched program."""
+    backend = resolve_backend(backend or config.backend, len(bodies))
     results: list[DropResult | None] = [None] * len(bodies)
     groups: dict[int, list[int]] = {}
     models: dict[int, mujoco.MjModel] = {}
@@ -225,13 +235,13 @@ def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Seq
         up: the scene's up direction (gravity is −up).
         categories: per-candidate category for the mass prior (default: the config's mass).
         config: physics priors and the drop test's settings.
-        backend: "mjx", "mujoco" or "auto" (default ``config.drop_test.backend``).
+        backend: "mjx", "warp", "mujoco" or "auto" (default ``config.drop_test.backend``).
 
     A candidate whose hull is empty or flat, or whose pose is not a similarity, gets a result
     with ``error`` set; the others are unaffected.
     """
     bodies, index, results = [], [], [None] * len(meshes)
-    backend = resolve_backend(backend or config.drop_test.backend)
+    backend = resolve_backend(backend or config.drop_test.backend, len(meshes))
     for k, ((vertices, _faces), pose) in enumerate(zip(meshes, poses, strict=True)):
         try:
             part = hull_part(vertices, config.max_hull_vertices)

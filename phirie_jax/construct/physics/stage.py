@@ -267,7 +267,7 @@ def exported_bodies(objects: list[dict], out_dir: Path, up: np.ndarray,
 
 def record_verdicts(entries: list[dict], results: list[dt.DropResult], config: PhysicsConfig) -> None:
     """Each entry's ``drop_test``, ``checks.settling`` and ``unresolved_checks`` from its result."""
-    method = f"drop test of the exported collision parts ({dt.resolve_backend(config.drop_test.backend)})"
+    method = f"drop test of the exported collision parts ({dt.resolve_backend(config.drop_test.backend, len(entries))})"
     for entry, result in zip(entries, results):
         entry["drop_test"] = result.record()
         entry.setdefault("checks", {})["settling"] = dt.settling_check(result, config.drop_test, method)

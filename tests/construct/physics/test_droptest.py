@@ -155,7 +155,13 @@ def test_auto_backend_is_the_c_library_without_an_accelerator():
 
     from phirie_jax.construct.physics.droptest import resolve_backend
 
-    assert resolve_backend("auto") == ("mujoco" if jax.default_backend() == "cpu" else "mjx")
+    from phirie_jax.construct.physics.droptest import AUTO_BATCH_MIN
+
+    assert resolve_backend("auto", 4) == "mujoco"                  # a few candidates: no compile pays
+    if jax.default_backend() == "cpu":
+        assert resolve_backend("auto", AUTO_BATCH_MIN) == "mujoco"
+    else:
+        assert resolve_backend("auto", AUTO_BATCH_MIN) in ("mjx", "warp")
     assert resolve_backend("mjx") == "mjx" and resolve_backend("mujoco") == "mujoco"
     with pytest.raises(ValueError, match="backend"):
         DropTestConfig(backend="bullet")
