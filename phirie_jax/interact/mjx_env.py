@@ -24,7 +24,8 @@ The MJX model (``mjx_model``) differs from the single environment's in contacts 
 robot collides through one box per finger (``robot.collision``) and each object through one
 convex hull of at most ``HULL_VERTICES`` (``collision="hull"``, ``interact.mjx_model``), except
 that the parts of ``object_id``, when it has several, meet the pads (a grip on its real shape):
-MJX traces a few dozen collision functions instead of hundreds. The task's target can change per episode (``task``); the grip is ``object_id``'s.
+MJX traces a few dozen collision functions instead of hundreds. The task's target can change
+per episode (``task``); the grip is ``object_id``'s.
 Bodies, joints, actuators, masses and inertias are the same, so MuJoCo C runs the same model
 for reference (the tests do).
 
