@@ -183,21 +183,10 @@ def _worker_pool(workers: int):
     import os
     from concurrent.futures import ProcessPoolExecutor
 
-    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    return ProcessPoolExecutor(workers, mp_context=spawn, initializer=_worker_start, initargs=(os.getpid(), threads))
-
-
-def _worker_start(parent_pid: int, threads: int) -> None:
-    """(In a pool worker.) Die with the parent, and give CoACD's OpenMP this worker's share of the
-    cores: each worker's OpenMP would otherwise start a thread per core, and on the 16-core GPU host
-    4 workers × 16 spinning threads took 64.5 s for what 2 cores did in 25 s."""
-    import os
-
     from phirie_jax.native import die_with_parent
 
-    os.environ.setdefault("OMP_NUM_THREADS", str(threads))  # read when CoACD's OpenMP starts
-    die_with_parent(parent_pid)
+    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
+    return ProcessPoolExecutor(workers, mp_context=spawn, initializer=die_with_parent, initargs=(os.getpid(),))
 
 
 @contextlib.contextmanager
