@@ -95,6 +95,9 @@ FIT_PRESETS = {
                          densify_interval=50),
     "large": FitConfig(steps=6000, initial_points=65536, max_gaussians=524288, sh_band_interval=500,
                        densify_interval=100),
+    # ~100 steps per view, as the default preset's fit
+    "crowded": FitConfig(steps=4800, initial_points=32768, max_gaussians=262144, sh_band_interval=400,
+                         densify_interval=50),
 }
 
 
