@@ -44,7 +44,7 @@ def exemplar_inpaint(image: np.ndarray, hole: np.ndarray, source: np.ndarray | N
     r = patch // 2
     confidence = (~todo).astype(np.float32)
     grey = out.mean(-1)
-    # isophotes of the known image (the hole's pixels carry no gradient)
+    # isophotes, the hole's own content (what the kept render left there) smoothed first
     gy, gx = np.gradient(np.where(todo, ndimage.uniform_filter(grey, 3), grey))
     while todo.any():
         front = todo & ndimage.binary_dilation(~todo)
