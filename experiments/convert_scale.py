@@ -151,6 +151,11 @@ def main() -> None:
           "exit_code": child.returncode, "wall_s": round(wall, 1), "peak_rss_gb": round(peak / 2**30, 2),
           "stage_s": {k: round(v, 1) for k, v in manifest.get("timings", {}).items() if "." not in k},
           "step_s": {k: round(v, 1) for k, v in manifest.get("timings", {}).items() if "." in k},
+          # of the whole wall; physics.collision runs beside the background stage, so shares overlap
+          "stage_share": {k: round(v / wall, 3) for k, v in manifest.get("timings", {}).items() if "." not in k},
+          "collision_s_per_object": {str(o["id"]): round(o["physics"]["collision"]["total_time_s"], 1)
+                                     for o in manifest.get("objects", [])
+                                     if (o.get("physics") or {}).get("collision", {}).get("total_time_s")},
           "frame": {k: manifest.get("frame", {}).get(k) for k in ("up_source", "scale", "scale_source")},
           "instances": len(manifest.get("instances", [])),
           "accepted": sum(o.get("status") == "accepted" for o in manifest.get("objects", [])),

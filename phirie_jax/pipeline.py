@@ -3,7 +3,9 @@
 Stages run in order, each reading and extending ``OUT/manifest.json``:
 frame (up and metres: the capture moved into a metric, +z-up world) → observe (instances)
 → objects (assets) → physics (collision, MJCF/URDF, drop tests) → background (removal,
-inpainting targets, fill). The cameras, in the world frame, are written beside the results
+inpainting targets, fill). The background runs while CoACD's worker processes build the
+collision (it needs only the objects' meshes), and again in the rare case that physics fails
+an object it removed. The cameras, in the world frame, are written beside the results
 (``transforms.json``) so the output folder is self-contained. A stage that fails is recorded
 in the manifest (``failed_stage``) and raised as a ``StageError`` (bad input stays a
 ``SceneInputError``); the stages after it do not run.
@@ -148,10 +150,10 @@ def _objects(run: Run) -> Run:
     return run
 
 
-def _physics(run: Run) -> Run:
+def _physics(run: Run, collision=None) -> Run:
     from phirie_jax.construct.physics.stage import run_physics
 
-    run_physics(run.capture.root, run.out_dir, run.config.physics)
+    run_physics(run.capture.root, run.out_dir, run.config.physics, collision=collision)
     return run
 
 
@@ -162,7 +164,53 @@ def _background(run: Run) -> Run:
     return run
 
 
-# The stage table: run in this order, each reading what the earlier ones wrote.
+def _run_stage(name: str, stage: Callable[[Run], Run], run: Run, progress, created: Path | None) -> Run:
+    """One stage, its failure recorded in the manifest; an input error removes the output folder
+    this conversion created (no partial output behind)."""
+    if progress is not None:
+        progress(name)
+    try:
+        with task(name):
+            return stage(run)
+    except SceneInputError as err:
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
+        else:
+            _failed(run.out_dir, name, err)
+        raise
+    except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
+        _failed(run.out_dir, name, err)
+        raise StageError(name, err) from err
+
+
+def _physics_beside_background(run: Run, progress, created: Path | None) -> Run:
+    """The physics and background stages with CoACD's worker processes running beside the
+    background stage (which uses the accelerator and needs only the objects' meshes): the
+    collision starts, the background runs, the physics stage takes the collision and goes on.
+    The background assumed that every object the objects stage accepted stays; when physics
+    fails one of them, the background runs again so that object's Gaussians stay in it."""
+    from phirie_jax.construct.physics.stage import start_collision
+
+    accepted = _accepted_ids(run.out_dir)
+    try:
+        collision = start_collision(run.out_dir, run.config.physics)
+    except Exception:  # noqa: BLE001 — the physics stage meets it again and records it as its failure
+        run = _run_stage("physics", _physics, run, progress, created)
+        return _run_stage("background", _background, run, progress, created)
+    with collision:
+        run = _run_stage("background", _background, run, progress, created)
+        run = _run_stage("physics", lambda r: _physics(r, collision), run, progress, created)
+    if _accepted_ids(run.out_dir) != accepted:
+        run = _run_stage("background", _background, run, progress, created)
+    return run
+
+
+def _accepted_ids(out_dir: Path) -> set:
+    return {e["id"] for e in Manifest.load_or_create(out_dir).get("objects") or [] if e.get("status") == "accepted"}
+
+
+# The stage table: run in this order, each reading what the earlier ones wrote (``run_convert``
+# runs the background beside the physics stage's collision: ``_physics_beside_background``).
 STAGES: dict[str, Callable[[Run], Run]] = {
     "frame": _frame, "observe": _observe, "objects": _objects, "physics": _physics, "background": _background}
 
@@ -272,23 +320,14 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
         created = _missing_root(out_dir)
         _clean(out_dir)
         _start(scene, run.out_dir)
-        for name, stage in STAGES.items():
-            if stages is not None and name != "frame" and name not in stages:
-                continue
-            if progress is not None:
-                progress(name)
-            try:
-                with task(name):
-                    run = stage(run)
-            except SceneInputError as err:
-                if created is not None:  # an input error leaves no partial output behind
-                    shutil.rmtree(created, ignore_errors=True)
-                else:
-                    _failed(run.out_dir, name, err)
-                raise
-            except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
-                _failed(run.out_dir, name, err)
-                raise StageError(name, err) from err
+        selected = [n for n in STAGES if stages is None or n == "frame" or n in stages]
+        for name in selected:
+            if name == "background" and "physics" in selected:
+                continue   # ran beside the physics stage's collision
+            if name == "physics" and "background" in selected:
+                run = _physics_beside_background(run, progress, created)
+            else:
+                run = _run_stage(name, STAGES[name], run, progress, created)
     manifest = Manifest.load_or_create(run.out_dir)
     manifest.record_timing("convert", time.perf_counter() - start)
     manifest.write()

@@ -80,3 +80,38 @@ def test_environment_renders_the_converted_scene_close_to_the_capture(converted)
     assert np.isfinite(np.asarray(now.rgb)).all()
     # the converted scene covers the image where the capture did (objects + filled table)
     assert np.mean(np.abs(a - c) > 0.5) < 0.02
+
+
+def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, monkeypatch):
+    """The background runs beside the collision assuming every accepted object stays; an object
+    whose collision then fails gets the background built again, with its Gaussians kept."""
+    import shutil
+
+    from phirie_jax.construct.physics import stage
+    from phirie_jax.construct.physics.collision import MeshError
+    from phirie_jax.construct.physics.config import PhysicsConfig
+    from phirie_jax.pipeline import ConvertConfig, run_convert
+
+    _, scene_dir, out = converted
+    before = json.loads((out / "manifest.json").read_text())
+    failing = next(o["id"] for o in before["objects"] if o["status"] == "accepted")
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    build = stage.build_object
+
+    def build_or_fail(entry, *args):
+        if entry["id"] == failing:
+            raise MeshError("made to fail by the test")
+        return build(entry, *args)
+
+    monkeypatch.setattr(stage, "build_object", build_or_fail)
+    config = ConvertConfig(physics=PhysicsConfig(workers=1))   # built in this process, where the patch holds
+    manifest = run_convert(scene_dir, copy, config, stages=("physics", "background"))
+    status = {o["id"]: o["status"] for o in manifest["objects"]}
+    assert status[failing] == "failed"
+    records = {o["id"]: o for o in manifest["background"]["objects"]}
+    assert records[failing]["status"] == "skipped"
+    b, b0 = manifest["background"], before["background"]
+    assert b["removed"] < b0["removed"]
+    capture = read_gaussian_ply(scene_dir / "point_cloud.ply")
+    assert read_gaussian_ply(copy / b["path"]).num == capture.num - b["removed"] + b["filled"]

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import time
 import traceback
 from pathlib import Path
 
@@ -49,16 +50,25 @@ SETTLE_SECONDS = 2.0
 # --- the stage -------------------------------------------------------------------------
 
 
-def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: PhysicsConfig | None = None) -> dict:
-    """The physics stage (module docstring). ``scene_dir`` is unused beyond the manifest's paths."""
+def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: PhysicsConfig | None = None,
+                collision: CollisionJob | None = None) -> dict:
+    """The physics stage (module docstring). ``scene_dir`` is unused beyond the manifest's paths.
+    collision: the objects' collision already started (``start_collision``), whose outcomes are
+    taken instead of building them here; timings ``physics.collision`` (its own wall time) and
+    ``physics.collision_wait`` (what this stage still waited for it)."""
     del scene_dir  # the manifest holds every path this stage needs (mesh, surface)
     out_dir = Path(out_dir)
     config = config or PhysicsConfig()
     manifest = Manifest.load_or_create(out_dir)
     objects = manifest.require("objects", "the object-construction stage")
     with manifest.timed("physics"):
-        with manifest.timed("physics.collision"):
-            build_accepted(objects, manifest.categories(), out_dir, config)
+        if collision is None:
+            with manifest.timed("physics.collision"):
+                build_accepted(objects, manifest.categories(), out_dir, config)
+        else:
+            with manifest.timed("physics.collision_wait"):
+                apply_outcomes(objects, collision.ids, collision.outcomes())
+            manifest.record_timing("physics.collision", collision.seconds)
         with manifest.timed("physics.export"):
             section = export_scene(objects, manifest.up(), _surface(manifest, out_dir), out_dir, config)
         manifest.set("objects", objects)
@@ -90,7 +100,14 @@ def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manif
 def build_accepted(objects: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig) -> None:
     """Build every accepted object in place: its fields on success, else status "failed" with the reason."""
     accepted = [e for e in objects if e.get("status") == "accepted"]
-    for entry, outcome in zip(accepted, build_objects(accepted, categories, out_dir, config)):
+    apply_outcomes(objects, [e["id"] for e in accepted], build_objects(accepted, categories, out_dir, config))
+
+
+def apply_outcomes(objects: list[dict], ids: list, outcomes: list[dict]) -> None:
+    """Each outcome of ``_build_outcome`` onto the entry of its object id, in place."""
+    by_id = {e["id"]: e for e in objects}
+    for ident, outcome in zip(ids, outcomes):
+        entry = by_id[ident]
         if "update" in outcome:
             entry.update(outcome["update"])
         else:
@@ -153,18 +170,35 @@ def _advanced(outcome: dict, advance) -> dict:
 
 def _build_in_workers(build, args: list[tuple], config: PhysicsConfig, advance) -> list[dict]:
     """``build(*a)`` of every ``a`` in a pool (``build_objects``), in order; ``advance()`` per object."""
+    with _worker_pool(_worker_count(len(args), config)) as pool, _terminated_on_interrupt(pool):
+        futures = [pool.submit(build, *a) for a in args]
+        outcomes = _gathered(futures, advance)
+    return _retried_alone(build, args, outcomes, advance)
+
+
+def _worker_count(objects: int, config: PhysicsConfig) -> int:
     import os
+
+    return max(1, min(objects, config.workers or os.cpu_count() or 1))
+
+
+def _gathered(futures: list, advance) -> list[dict | None]:
+    """Each future's outcome in order; None where its worker died."""
     from concurrent.futures.process import BrokenProcessPool
 
-    workers = min(len(args), config.workers or os.cpu_count() or 1)
-    outcomes: list[dict | None] = [None] * len(args)
-    with _worker_pool(workers) as pool, _terminated_on_interrupt(pool):
-        futures = [pool.submit(build, *a) for a in args]
-        for k, future in enumerate(futures):
-            try:
-                outcomes[k] = _advanced(future.result(), advance)
-            except BrokenProcessPool:
-                pass
+    outcomes: list[dict | None] = [None] * len(futures)
+    for k, future in enumerate(futures):
+        try:
+            outcomes[k] = _advanced(future.result(), advance)
+        except BrokenProcessPool:
+            pass
+    return outcomes
+
+
+def _retried_alone(build, args: list[tuple], outcomes: list[dict | None], advance) -> list[dict]:
+    """The objects whose worker died (None in ``outcomes``) built again, each alone."""
+    from concurrent.futures.process import BrokenProcessPool
+
     for k, outcome in enumerate(outcomes):
         if outcome is None:
             with _worker_pool(1) as alone, _terminated_on_interrupt(alone):
@@ -174,6 +208,68 @@ def _build_in_workers(build, args: list[tuple], config: PhysicsConfig, advance) 
                     outcomes[k] = {"reason": "the collision process died (CoACD crashed on this mesh)"}
             advance()
     return outcomes
+
+
+class CollisionJob:
+    """The accepted objects' collision, built in worker processes from ``start_collision`` on, so
+    the caller can use the accelerator meanwhile (the background stage needs only the objects'
+    meshes); ``outcomes()`` waits for it. A ``with`` block around the work done meanwhile
+    terminates the workers when that work raises. With ``workers=1`` it builds in ``outcomes()``."""
+
+    def __init__(self, entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig):
+        self.ids = [e["id"] for e in entries]
+        self._args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
+        self._start = time.perf_counter()
+        self._finished = self._start
+        self._pool = self._futures = None
+        if config.workers != 1 and self._args:
+            self._pool = _worker_pool(_worker_count(len(self._args), config))
+            self._futures = [self._pool.submit(_build_outcome, *a) for a in self._args]
+            for future in self._futures:
+                future.add_done_callback(self._note_finish)
+        self.seconds = 0.0   # the collision's own wall time, once ``outcomes()`` returned
+
+    def _note_finish(self, _future) -> None:
+        self._finished = max(self._finished, time.perf_counter())
+
+    def __enter__(self) -> CollisionJob:
+        return self
+
+    def __exit__(self, kind, err, trace) -> None:
+        if kind is not None:
+            self.cancel()
+
+    def cancel(self) -> None:
+        """Terminate the workers now (what they were building is dropped)."""
+        if self._pool is not None:
+            _terminate(self._pool)
+            self._pool = None
+
+    def outcomes(self) -> list[dict]:
+        """``_build_outcome`` of every entry, in order (waits for the workers)."""
+        with task("collision (CoACD per object)", len(self._args)) as advance:
+            if self._futures is None:
+                outcomes = [_advanced(_build_outcome(*a), advance) for a in self._args]
+                self._finished = time.perf_counter()
+            else:
+                with _terminated_on_interrupt(self._pool):
+                    outcomes = _gathered(self._futures, advance)
+                self._pool.shutdown()
+                self._pool = None
+                if None in outcomes:  # a worker died: its objects are built again, each alone
+                    outcomes = _retried_alone(_build_outcome, self._args, outcomes, advance)
+                    self._finished = time.perf_counter()
+        self.seconds = self._finished - self._start
+        return outcomes
+
+
+def start_collision(out_dir: str | Path, config: PhysicsConfig | None = None) -> CollisionJob:
+    """Start building the collision of the manifest's accepted objects (``CollisionJob``)."""
+    out_dir = Path(out_dir)
+    manifest = Manifest.load_or_create(out_dir)
+    objects = manifest.require("objects", "the object-construction stage")
+    accepted = [e for e in objects if e.get("status") == "accepted"]
+    return CollisionJob(accepted, manifest.categories(), out_dir, config or PhysicsConfig())
 
 
 def _worker_pool(workers: int):
@@ -198,14 +294,19 @@ def _terminated_on_interrupt(pool):
     try:
         yield
     except BaseException:
-        terminate = getattr(pool, "terminate_workers", None)  # Python ≥ 3.14
-        if terminate is not None:
-            terminate()
-        else:
-            for process in list((pool._processes or {}).values()):  # what terminate_workers does
-                process.terminate()
-            pool.shutdown(wait=False, cancel_futures=True)
+        _terminate(pool)
         raise
+
+
+def _terminate(pool) -> None:
+    """The pool's workers terminated at once, its queued work dropped."""
+    terminate = getattr(pool, "terminate_workers", None)  # Python ≥ 3.14
+    if terminate is not None:
+        terminate()
+    else:
+        for process in list((pool._processes or {}).values()):  # what terminate_workers does
+            process.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 # --- step 2: supports, scene.xml and its free settle -----------------------------------

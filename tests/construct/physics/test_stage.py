@@ -14,7 +14,7 @@ import trimesh
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
 from phirie_jax.construct.physics.mjcf import settle_scene
 from phirie_jax.construct.physics.parts import read_part
-from phirie_jax.construct.physics.stage import run_droptest, run_physics
+from phirie_jax.construct.physics.stage import run_droptest, run_physics, start_collision
 from phirie_jax.errors import SceneInputError
 from tests.construct.physics.test_collision import fin_mesh
 from tests.fixtures.constructed import constructed_folder
@@ -258,3 +258,31 @@ def test_a_build_that_kills_its_process_is_recorded_and_the_rest_go_on(tmp_path,
     by_id = dict(zip(ids, outcomes))
     assert by_id[2] == {"reason": "the collision process died (CoACD crashed on this mesh)"}
     assert all(by_id[i] == {"update": {"built": i}} for i in ids if i != 2)
+
+
+def test_a_collision_started_ahead_gives_what_the_stage_builds_itself(physics, tmp_path):
+    """``start_collision`` (workers busy while the caller does other work) then ``run_physics``
+    with it: the same statuses, parts and mass properties as building inside the stage."""
+    _, _, built_here = physics
+    out, _ = constructed_folder(tmp_path / "out", seed=0, extra=BAD)
+    job = start_collision(out, C_BACKEND)
+    manifest = run_physics(None, out, C_BACKEND, collision=job)
+    for ahead, here in zip(manifest["objects"], built_here["objects"]):
+        assert ahead["status"] == here["status"] and ahead["collision"] == here["collision"]
+        if here["status"] == "accepted":
+            assert ahead["physics"]["mass_properties"] == here["physics"]["mass_properties"]
+            for p in here["collision"]:
+                np.testing.assert_array_equal(read_part(out / p).vertices, read_part(physics[0] / p).vertices)
+    assert job.seconds > 0
+    assert {"physics.collision", "physics.collision_wait"} <= set(manifest["timings"])
+
+
+def test_a_collision_started_ahead_is_terminated_when_the_work_beside_it_fails(tmp_path):
+    out, _ = constructed_folder(tmp_path / "out", seed=0)
+    job = start_collision(out, PhysicsConfig(workers=2))
+    with pytest.raises(RuntimeError, match="beside"), job:
+        workers = list(job._pool._processes.values())
+        raise RuntimeError("the work beside the collision failed")
+    for process in workers:
+        process.join(timeout=5)
+        assert not process.is_alive()
