@@ -204,10 +204,12 @@ class WarpDropBatch:
 
 
 def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
-            device: str | None = None, graph_steps: int = GRAPH_STEPS, options: dict | None = None) -> WarpDropBatch:
+            device: str | None = None, graph_steps: int = GRAPH_STEPS, options: dict | None = None,
+            disable: int = 0) -> WarpDropBatch:
     """The batch of ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7), on
     ``device`` (default: the first GPU, else the CPU), its graphs captured. graph_steps: protocol
-    steps per captured graph; options: MuJoCo Warp ``Option`` fields to override (benchmarks)."""
+    steps per captured graph; options: MuJoCo Warp ``Option`` fields to override; disable: more
+    ``DisableBit`` flags (benchmarks)."""
     ok, why = available()
     if not ok:
         raise RuntimeError(why)
@@ -223,6 +225,7 @@ def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestCon
         model.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
         for name, value in (options or {}).items():
             setattr(model.opt, name, value)
+        model.opt.disableflags |= disable
         parts = bank.ngeom - 1
         data = mjw.make_data(bank, nworld=n, nconmax=CONTACTS_PER_PART * parts,
                              njmax=CONTACTS_PER_PART * parts * 4, naconmax=n * CONTACTS_PER_PART * parts)
