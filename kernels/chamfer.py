@@ -26,6 +26,7 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from kernels.pytree import pytree_dataclass, static_field
 
@@ -131,7 +132,8 @@ def build_grid(targets, target_mask, cell, table_size: int = 4096, capacity: int
     return Grid(points, start, count, jnp.any(count > capacity), jnp.asarray(cell, targets.dtype), capacity)
 
 
-_OFFSETS = jnp.stack(jnp.meshgrid(*[jnp.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(27, 3)
+# a NumPy constant: a jnp one would start a JAX backend when the module is imported
+_OFFSETS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(27, 3).astype(np.int32)
 
 
 def nearest_grid(queries, grid: Grid, chunk: int = 256):
