@@ -4,8 +4,9 @@ sequential PyBullet loop and multi-threaded MuJoCo C (``mujoco.rollout``); print
     python -m experiments.droptest_warp_levers --count 1024 --out experiments/results/droptest_warp_levers_h100.json
 
 A kernel profile of one step (``kernel_profile``) says where the step's time goes. Each lever is
-a ``warp_batch.prepare`` setting: the model's unused features turned off (``UNUSED``), fewer
-solver iterations, the CG solver, protocol steps per captured CUDA graph, CUDA-graph
+a ``warp_batch.prepare`` setting (the default turns the model's unused features off,
+``warp_batch.UNUSED_FEATURES``): fewer solver iterations, the CG solver, protocol steps per
+captured CUDA graph, CUDA-graph
 conditionals for the solver's early termination (``Option.graph_conditional``), the experimental
 ``run_qacc_smooth = False`` (no unconstrained acceleration or mass-matrix factorisation before
 the Newton solve), and the early exit through sleeping. Per lever: run time (median of
@@ -28,28 +29,10 @@ from phirie_jax.construct.physics import warp_batch
 from phirie_jax.construct.physics.config import DropTestConfig
 from phirie_jax.construct.physics.droptest import build_model, spawn_qpos, verdict
 
-# Features this model has none of (no joints but the free one, no actuators, sensors, tendons,
-# equalities, springs or dampers; one body per world): turning them off changes no number, only
-# which kernels a step launches.
-UNUSED = ("EQUALITY", "FRICTIONLOSS", "LIMIT", "SPRING", "DAMPER", "ACTUATION", "CLAMPCTRL", "SENSOR",
-          "EULERDAMP", "ISLAND")
-
-
-def unused_features_off() -> dict:
-    import mujoco_warp as mjw
-
-    flags = 0
-    for name in UNUSED:
-        flags |= int(getattr(mjw.DisableBit, name))
-    return {"disable": flags}
-
-
 LEVERS = {
-    "default (16 steps per graph)": {},
-    "unused features off": {"options": unused_features_off},
-    "unused features off, 2 solver + 2 line-search iterations":
-        {"options": lambda: {**unused_features_off(), "iterations": 2, "ls_iterations": 2}},
-    "CG solver": {"options": lambda: {"solver": 1}},
+    "default (16 steps per graph, unused features off)": {},
+    "2 solver + 2 line-search iterations": {"options": {"iterations": 2, "ls_iterations": 2}},
+    "CG solver": {"options": {"solver": 1}},
     "96 steps per graph": {"graph_steps": 96},
     "480 steps per graph": {"graph_steps": 480},
     "no graph conditionals": {"options": {"graph_conditional": False}},
@@ -77,7 +60,6 @@ def main() -> None:
     rows, profile, first = [], None, None
     for name, lever in LEVERS.items():
         try:
-            lever = _resolved(lever)
             t0 = time.perf_counter()
             batch = warp_batch.prepare(models, qpos0, config, **lever)
             if profile is None:
@@ -103,18 +85,6 @@ def main() -> None:
         print(rows[-1]["lever"], round(run, 4), flush=True)
     emit({"candidates": args.count, "mujoco_c_s": c_row["run_s"], "rollout": rollout_row,
           "pybullet": pb_row or status, "kernel_profile": profile, "levers": rows}, args.out)
-
-
-def _resolved(lever: dict) -> dict:
-    """A lever with its options made (they name ``mujoco_warp`` flags, imported only here)."""
-    options = lever.get("options")
-    if callable(options):
-        lever = {**lever, "options": options()}
-    disable = (lever.get("options") or {}).get("disable")
-    if disable is not None:
-        options = {k: v for k, v in lever["options"].items() if k != "disable"}
-        lever = {**lever, "options": options, "disable": disable}
-    return lever
 
 
 def kernel_profile(batch, steps: int = 16, top: int = 15) -> dict:

@@ -44,16 +44,24 @@ def _say(message: str) -> None:
     print(f"robot_eval: {message}", file=sys.stderr, flush=True)
 
 
-def plans_for(env: Environment, qpos: np.ndarray, object_id: int, goal) -> np.ndarray:
-    """(W, T, nu) the script's controls for each world's initial ``qpos`` (W, nq), planned in C."""
-    out = []
+def plans_for(env: Environment, qpos: np.ndarray, object_id: int, goal) -> tuple[np.ndarray, np.ndarray]:
+    """(W, T, nu) the script's controls for each world's initial ``qpos`` (W, nq), planned in C,
+    and (W,) whether a plan was found. A placement the script refuses (the hand or the carried
+    object would hit another object, the target out of reach) gets one row holding the robot
+    still: that episode is a failure of the scripted policy in both simulators."""
+    out, planned = [], []
     for q in qpos:
         env.reset()
         env.data.qpos[:] = q
         mujoco.mj_forward(env.model, env.data)
-        out.append(script.plan_pick_place(env, object_id, goal).ctrl)
+        try:
+            out.append(script.plan_pick_place(env, object_id, goal).ctrl)
+            planned.append(True)
+        except script.UnreachableError:
+            out.append(env.data.ctrl[None].copy())
+            planned.append(False)
     length = max(len(p) for p in out)
-    return np.stack([np.concatenate([p, np.repeat(p[-1:], length - len(p), 0)]) for p in out])
+    return np.stack([np.concatenate([p, np.repeat(p[-1:], length - len(p), 0)]) for p in out]), np.array(planned)
 
 
 def run_c(env: Environment, qpos: np.ndarray, plans: np.ndarray, object_id: int, goal) -> list[dict]:
@@ -88,7 +96,7 @@ def evaluate_object(env: Environment, object_id: int, goal, episodes: int, place
     state = jax.block_until_ready(reset(keys))
     qpos = np.asarray(state.data.qpos, np.float64)
     t0 = time.perf_counter()
-    plans = plans_for(env, qpos, object_id, goal)
+    plans, planned = plans_for(env, qpos, object_id, goal)
     plan_s = time.perf_counter() - t0
     ctrl = jnp.asarray(np.swapaxes(plans, 0, 1), jnp.float32)
     _say(f"object {object_id}: compiling the rollout ({ctrl.shape[0]} ticks × {ctrl.shape[1]} worlds)")
@@ -103,13 +111,13 @@ def evaluate_object(env: Environment, object_id: int, goal, episodes: int, place
     t0 = time.perf_counter()
     c_outcomes = run_c(env, qpos, plans, object_id, goal)
     c_s = time.perf_counter() - t0
-    mjx_wins = np.asarray(final.done)
-    c_wins = np.array([o["success"] for o in c_outcomes])
+    mjx_wins = np.asarray(final.done) & planned
+    c_wins = np.array([o["success"] for o in c_outcomes]) & planned
     steps = plans.shape[1] * menv.substeps * episodes
     return {"object": object_id, "goal": [float(v) for v in goal], "episodes": episodes,
             "ticks": int(plans.shape[1]), "substeps": menv.substeps,
             "mjx_success_rate": float(mjx_wins.mean()), "c_success_rate": float(c_wins.mean()),
-            "agree": float(np.mean(mjx_wins == c_wins)),
+            "agree": float(np.mean(mjx_wins == c_wins)), "planned": int(planned.sum()),
             "mjx_distance_m": [round(-float(r), 4) for r in np.asarray(final.reward)],
             "c_distance_m": [round(o["distance_m"], 4) for o in c_outcomes],
             "mjx_compile_s": {"reset": round(reset_s, 2), "rollout": round(rollout_s, 2)},
@@ -135,6 +143,7 @@ def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, ob
     return {"benchmark": "robot_eval", "scene": str(out_dir), "episodes_per_object": episodes,
             "placement_range_m": placement_range, "seed": seed,
             "objects": rows,
+            "planned": sum(r["planned"] for r in rows),
             "mjx_success_rate": sum(r["mjx_success_rate"] * r["episodes"] for r in rows) / total,
             "c_success_rate": sum(r["c_success_rate"] * r["episodes"] for r in rows) / total,
             "mjx_episodes_per_s": round(total / sum(r["mjx_run_s"] for r in rows), 4),
