@@ -32,6 +32,8 @@ import sys
 import time
 from pathlib import Path
 
+from phirie_jax.synthetic.scene import PRESETS
+
 # what a user's capture lacks, beside what discovery_eval leaves out: the truth and a declared frame
 LEFT_OUT = ("surface.ply", "masks", "candidates", "gt", "frame.json")
 
@@ -93,7 +95,7 @@ def densified(data, copies: int, seed: int = 0):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="large", choices=["tiny", "default", "large"])
+    parser.add_argument("--preset", default="large", choices=sorted(PRESETS))
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--scene", type=Path, default=Path("/tmp/convert_scale_scene"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/convert_scale"))
