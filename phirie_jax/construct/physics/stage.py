@@ -155,25 +155,12 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     builds in this one (unprotected: for debugging). ``build``: what runs per entry (a top-level
     function; default ``_build_outcome``). Workers never outlive this process (``_worker_pool``).
     """
-    args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
-    build = _build_outcome if build is None else build
-    with task("collision (CoACD per object)", len(args)) as advance:
-        if config.workers == 1 or not args:
-            return [_advanced(build(*a), advance) for a in args]
-        return _build_in_workers(build, args, config, advance)
+    return CollisionJob(entries, categories, out_dir, config, build).outcomes()
 
 
 def _advanced(outcome: dict, advance) -> dict:
     advance()
     return outcome
-
-
-def _build_in_workers(build, args: list[tuple], config: PhysicsConfig, advance) -> list[dict]:
-    """``build(*a)`` of every ``a`` in a pool (``build_objects``), in order; ``advance()`` per object."""
-    with _worker_pool(_worker_count(len(args), config)) as pool, _terminated_on_interrupt(pool):
-        futures = [pool.submit(build, *a) for a in args]
-        outcomes = _gathered(futures, advance)
-    return _retried_alone(build, args, outcomes, advance)
 
 
 def _worker_count(objects: int, config: PhysicsConfig) -> int:
@@ -214,17 +201,19 @@ class CollisionJob:
     """The accepted objects' collision, built in worker processes from ``start_collision`` on, so
     the caller can use the accelerator meanwhile (the background stage needs only the objects'
     meshes); ``outcomes()`` waits for it. A ``with`` block around the work done meanwhile
-    terminates the workers when that work raises. With ``workers=1`` it builds in ``outcomes()``."""
+    terminates the workers when that work raises. With ``workers=1`` it builds in ``outcomes()``.
+    ``build``: what runs per entry (``build_objects``)."""
 
-    def __init__(self, entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig):
+    def __init__(self, entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig, build=None):
         self.ids = [e["id"] for e in entries]
+        self._build = _build_outcome if build is None else build
         self._args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
         self._start = time.perf_counter()
         self._finished = self._start
         self._pool = self._futures = None
         if config.workers != 1 and self._args:
             self._pool = _worker_pool(_worker_count(len(self._args), config))
-            self._futures = [self._pool.submit(_build_outcome, *a) for a in self._args]
+            self._futures = [self._pool.submit(self._build, *a) for a in self._args]
             for future in self._futures:
                 future.add_done_callback(self._note_finish)
         self.seconds = 0.0   # the collision's own wall time, once ``outcomes()`` returned
@@ -246,10 +235,10 @@ class CollisionJob:
             self._pool = None
 
     def outcomes(self) -> list[dict]:
-        """``_build_outcome`` of every entry, in order (waits for the workers)."""
+        """``build`` of every entry, in order (waits for the workers)."""
         with task("collision (CoACD per object)", len(self._args)) as advance:
             if self._futures is None:
-                outcomes = [_advanced(_build_outcome(*a), advance) for a in self._args]
+                outcomes = [_advanced(self._build(*a), advance) for a in self._args]
                 self._finished = time.perf_counter()
             else:
                 with _terminated_on_interrupt(self._pool):
@@ -257,7 +246,7 @@ class CollisionJob:
                 self._pool.shutdown()
                 self._pool = None
                 if None in outcomes:  # a worker died: its objects are built again, each alone
-                    outcomes = _retried_alone(_build_outcome, self._args, outcomes, advance)
+                    outcomes = _retried_alone(self._build, self._args, outcomes, advance)
                     self._finished = time.perf_counter()
         self.seconds = self._finished - self._start
         return outcomes
