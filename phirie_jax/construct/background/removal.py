@@ -41,6 +41,7 @@ from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.views import Crop, CropRenderer, make_crop, pass_bucket
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.layout import resolve
+from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.types import Camera, GaussianSplatData
 
 DEPTH_ALPHA = 0.5  # rendered alpha below this at a pixel: nothing of the object there to occlude
@@ -96,27 +97,23 @@ def near_points(means: np.ndarray, points: np.ndarray, radius: float) -> np.ndar
     return idx[np.isfinite(d) & (d <= radius)]
 
 
-def near_surface(means: np.ndarray, vertices: np.ndarray, faces: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of ``means`` within ``radius`` of the triangle surface or inside it (R_asset;
-    ``Raycaster.within``)."""
-    from phirie_jax.observe.raycast import Raycaster
-
-    box = np.stack([vertices.min(0) - radius, vertices.max(0) + radius])
+def near_surface(means: np.ndarray, caster: Raycaster, radius: float) -> np.ndarray:
+    """Indices of ``means`` within ``radius`` of the caster's triangle surface or inside it
+    (R_asset; ``Raycaster.within``)."""
+    box = np.stack([caster.vertices.min(0) - radius, caster.vertices.max(0) + radius])
     idx = _in_box(means, box)
-    if len(idx) == 0 or len(faces) == 0:
+    if len(idx) == 0:
         return np.zeros(0, np.int64)
-    return idx[Raycaster(vertices, faces).within(means[idx], radius)]
+    return idx[caster.within(means[idx], radius)]
 
 
-def reaching_into(data: GaussianSplatData, candidates: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                  sigmas: float, depth: float) -> np.ndarray:
+def reaching_into(data: GaussianSplatData, candidates: np.ndarray, caster: Raycaster, sigmas: float,
+                  depth: float) -> np.ndarray:
     """Indices among ``candidates`` (K,) whose longest axis, ``sigmas`` σ either side of the centre,
-    ends more than ``depth`` inside the closed mesh (R_reach; ``RemovalConfig.reach_sigmas``)."""
+    ends more than ``depth`` inside the caster's closed mesh (R_reach; ``RemovalConfig.reach_sigmas``)."""
     from scipy.spatial.transform import Rotation
 
-    from phirie_jax.observe.raycast import Raycaster
-
-    if len(candidates) == 0 or len(faces) == 0:
+    if len(candidates) == 0:
         return np.zeros(0, np.int64)
     scales = np.exp(data.log_scales[candidates].astype(np.float64))
     longest = np.argmax(scales, axis=1)
@@ -125,28 +122,25 @@ def reaching_into(data: GaussianSplatData, candidates: np.ndarray, vertices: np.
     rot = Rotation.from_quat(quats / np.maximum(norms, 1e-12), scalar_first=True).as_matrix()
     axis = rot[np.arange(len(candidates)), :, longest] * (sigmas * scales[np.arange(len(candidates)), longest])[:, None]
     centres = data.means[candidates].astype(np.float64)
-    caster = Raycaster(vertices, faces)
     ends = caster.deep_inside(np.concatenate([centres + axis, centres - axis]), depth).reshape(2, -1)
     return candidates[ends.any(axis=0)]
 
 
-def enclosed_by(means: np.ndarray, candidates: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                up: np.ndarray, directions: int, lift: float) -> np.ndarray:
-    """Indices among ``candidates`` (K,) walled in by the closed mesh: in every one of
+def enclosed_by(means: np.ndarray, candidates: np.ndarray, caster: Raycaster, up: np.ndarray, directions: int,
+                lift: float) -> np.ndarray:
+    """Indices among ``candidates`` (K,) walled in by the caster's closed mesh: in every one of
     ``directions`` evenly spread horizontal directions (⊥ ``up``), a ray from the centre, or from
     the centre raised by ``lift`` / 2 or ``lift``, meets the mesh (R_enclosed: the inside of an open
     container, neither near its outer surface nor inside its volume; the raised rays reach the
     walls over a floor at the support's height, below a rounded foot)."""
     from phirie_jax.geometry import rotation_to_z
-    from phirie_jax.observe.raycast import Raycaster
 
-    if len(candidates) == 0 or len(faces) == 0:
+    if len(candidates) == 0:
         return np.zeros(0, np.int64)
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     to_world = rotation_to_z(up).T        # gravity frame → world
     angles = 2 * np.pi * np.arange(directions) / directions
     rays = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(directions)]) @ to_world.T
-    caster = Raycaster(vertices, faces)
     walled = np.zeros((len(candidates), directions), bool)
     for height in (0.0, 0.5 * lift, lift):
         origins = np.repeat(means[candidates] + height * up, directions, axis=0)
@@ -258,25 +252,25 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
 def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
                  config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0)) -> tuple[list[np.ndarray], list[dict]]:
     """R_i for every object (sorted unique indices into ``data``) and per-object records with the
-    counts of R_obs, R_asset, R_mask and their union."""
+    counts of R_obs, R_asset, R_mask and their union. Each object's mesh is prepared for ray
+    casting once, for R_asset, R_enclosed and R_reach."""
     means = data.means.astype(np.float64)
     masks, mask_records = mask_votes(data, objects, cameras, config, crops)
     sets, records = [], []
     for o, r_mask, mask_record in zip(objects, masks, mask_records):
         r_obs = near_points(means, o.q, config.removal.obs_radius)
-        r_asset = (near_surface(means, o.mesh[0], o.mesh[1], config.removal.asset_radius)
-                   if o.mesh is not None else np.zeros(0, np.int64))
+        caster = Raycaster(*o.mesh) if o.mesh is not None and len(o.mesh[1]) else None
+        r_asset = near_surface(means, caster, config.removal.asset_radius) if caster else np.zeros(0, np.int64)
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
-        if o.mesh is not None:
+        if caster is not None:
             rest = np.setdiff1d(_in_box(means, o.bounds(config.removal.bounds_margin)), union, assume_unique=True)
             if config.removal.enclosed_directions > 0:
-                r_enclosed = enclosed_by(means, rest, o.mesh[0], o.mesh[1], np.asarray(up, np.float64),
+                r_enclosed = enclosed_by(means, rest, caster, np.asarray(up, np.float64),
                                          config.removal.enclosed_directions, config.removal.enclosed_lift)
                 rest = np.setdiff1d(rest, r_enclosed, assume_unique=True)
             if config.removal.reach_sigmas > 0:
-                r_reach = reaching_into(data, rest, o.mesh[0], o.mesh[1], config.removal.reach_sigmas,
-                                        config.removal.reach_depth)
+                r_reach = reaching_into(data, rest, caster, config.removal.reach_sigmas, config.removal.reach_depth)
             union = np.union1d(union, np.union1d(r_enclosed, r_reach))
         sets.append(union)
         records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask), "enclosed": len(r_enclosed),

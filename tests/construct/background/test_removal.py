@@ -7,6 +7,7 @@ import numpy as np
 import trimesh
 
 from phirie_jax.construct.background.removal import near_surface
+from phirie_jax.observe.raycast import Raycaster
 
 
 def test_near_or_inside_the_asset_and_nothing_beyond():
@@ -17,7 +18,7 @@ def test_near_or_inside_the_asset_and_nothing_beyond():
     outside = np.column_stack([np.full(50, 0.2), rng.uniform(-0.1, 0.1, (50, 2))])  # 5 cm outside
     far = rng.uniform(1.0, 2.0, (50, 3))
     means = np.concatenate([inside, shell, outside, far])
-    taken = near_surface(means, box.vertices, box.faces, radius=0.024)
+    taken = near_surface(means, Raycaster(box.vertices, box.faces), radius=0.024)
     np.testing.assert_array_equal(taken, np.arange(250))
 
 
@@ -54,7 +55,7 @@ def test_needles_reaching_into_the_asset_across_the_contact():
     from phirie_jax.types import GaussianSplatData
 
     data = GaussianSplatData.join([data.subset(np.arange(2)), short, flat], like=data)
-    taken = reaching_into(data, np.arange(data.num), box.vertices, box.faces, sigmas=2.0, depth=0.005)
+    taken = reaching_into(data, np.arange(data.num), Raycaster(box.vertices, box.faces), sigmas=2.0, depth=0.005)
     np.testing.assert_array_equal(taken, [0])
 
 
@@ -69,8 +70,8 @@ def test_the_inside_of_an_open_container_is_walled_in():
                                       trimesh.creation.box([0.1, 0.01, 0.1]).apply_translation([0.3, -0.02, 0.05])])
     mesh = trimesh.util.concatenate([tube, walls])
     means = np.array([[0.0, 0.0, 0.0], [0.01, -0.01, 0.03], [0.1, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.0, 0.2]])
-    walled = enclosed_by(means, np.arange(len(means)), mesh.vertices, mesh.faces, np.array([0, 0, 1.0]), 8, 0.01)
+    caster = Raycaster(mesh.vertices, mesh.faces)
+    walled = enclosed_by(means, np.arange(len(means)), caster, np.array([0, 0, 1.0]), 8, 0.01)
     np.testing.assert_array_equal(walled, [0, 1])
     long_up = np.array([0.0, 0.0, 2.0])                  # up of any length
-    np.testing.assert_array_equal(enclosed_by(means, np.arange(len(means)), mesh.vertices, mesh.faces, long_up, 8, 0.01),
-                                  [0, 1])
+    np.testing.assert_array_equal(enclosed_by(means, np.arange(len(means)), caster, long_up, 8, 0.01), [0, 1])
