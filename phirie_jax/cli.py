@@ -90,7 +90,7 @@ def _print_converted(facts: dict) -> None:
     from rich.table import Table
 
     console = Console()
-    table = Table(title=f"phirie info: {facts['root']} (converted)", show_header=False)
+    table = Table(title=f"phirie info: {facts['root']} ({facts['state']})", show_header=False)
     table.add_column("what", style="bold")
     table.add_column("value")
     for key in ("scene", "frame", "outcome", "background", "files", "timings_s"):
@@ -402,8 +402,12 @@ def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig =
         config: physics and drop-test parameters.
     """
     from phirie_jax.construct.physics.stage import run_droptest
+    from phirie_jax.io.output_folder import OutputLock
 
-    _print_objects(run_droptest(out, config))
+    if not out.is_dir():
+        raise SceneInputError(out, None, "not a folder (expected a phirie convert output folder)")
+    with OutputLock.acquire(out):
+        _print_objects(run_droptest(out, config))
 
 
 def simulate(out_dir: Annotated[Path, tyro.conf.Positional], out: Path = Path("rollout.mp4"),

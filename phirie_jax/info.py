@@ -167,14 +167,36 @@ def is_converted(path: Path) -> bool:
 CONVERTED_FILES = (layout.SCENE_MJCF, layout.SCENE_USD, layout.BACKGROUND, layout.CAMERAS, layout.REPORT)
 
 
+def conversion_state(out_dir: Path, manifest) -> str:
+    """"converted" when every stage completed; else which stage did not and why, e.g. "incomplete:
+    the physics stage did not finish (...)", or "partial: ..." for a folder of ``phirie observe``;
+    says so when a conversion holds the folder now."""
+    from phirie_jax.io.output_folder import running_holder
+    from phirie_jax.manifest import COMPLETE, describe_status
+
+    status = manifest.stage_status()
+    unfinished = {name: s for name, s in status.items() if s != COMPLETE}
+    holder = running_holder(out_dir)
+    now = f"; a conversion is running now: {holder}" if holder else ""
+    if not unfinished:
+        return "converted" + now
+    done = [name for name, s in status.items() if s == COMPLETE]
+    if done and set(unfinished.values()) == {"not run"} and list(status)[:len(done)] == done:
+        return f"partial: {', '.join(done)} ran; {', '.join(unfinished)} not run" + now
+    name, first = next(iter(unfinished.items()))
+    return f"incomplete: the {name} stage {describe_status(first)}" + now
+
+
 def converted_facts(out_dir: Path) -> dict:
-    """A JSON-ready summary of a converted folder: scene, frame, outcome, each object's record,
-    the background, the files written (bytes; None when absent) and the stages' seconds."""
+    """A JSON-ready summary of a converted folder: its state (``conversion_state``), scene, frame,
+    outcome, each object's record, the background, the files written (bytes; "not written" when
+    absent) and the stages' seconds."""
     from phirie_jax.manifest import Manifest
 
     out_dir = Path(out_dir)
     manifest = Manifest.load_or_create(out_dir)
     data = manifest.data
+    state = conversion_state(out_dir, manifest)
     frame = data.get("frame") or {}
     background = data.get("background") or {}
     objects = [{"id": o["id"], "status": o.get("status"), "candidate": candidate_name(o),
@@ -187,16 +209,19 @@ def converted_facts(out_dir: Path) -> dict:
     usd = (data.get("physics") or {}).get("usd") or {}
     return {
         "root": str(out_dir),
+        "state": state,
+        "stages": manifest.stage_status(),
         "scene": (data.get("scene") or {}).get("path"),
         "frame": None if not frame else (f"{frame.get('scale', 1.0):.6g} m per capture unit "
                                          f"({frame.get('scale_source')}); up from {frame.get('up_source')}"),
-        "outcome": outcome_lines(data),
+        "outcome": ([] if state.startswith("converted") else [state]) + outcome_lines(data),
         "objects": objects,
         "background": None if not background else (
             f"{background.get('source_gaussians')} → {background.get('gaussians')} Gaussians "
             f"({background.get('removed')} removed, {background.get('filled')} filled)"),
         "files": {name: size if size is not None else ("not written: " + usd["reason"]
-                                                        if name == layout.SCENE_USD and usd.get("reason") else None)
+                                                        if name == layout.SCENE_USD and usd.get("reason") else
+                                                        "not written")
                   for name, size in files.items()},
         "timings_s": {k: round(float(v), 1) for k, v in (data.get("timings") or {}).items() if "." not in k},
     }

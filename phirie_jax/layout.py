@@ -13,6 +13,7 @@ relative to the output folder).
     OUT/report.html                what the conversion made, self-contained (images inlined)
     OUT/background.ply             G_bg = (G0 \\ ∪R_i) ∪ G_fill
     OUT/background/targets/        the inpainting targets, when written
+    OUT/.phirie.lock               the running conversion's lock (``io.output_folder``)
 """
 
 from __future__ import annotations
@@ -32,6 +33,11 @@ OBJECT_MESH = "mesh.obj"
 OBJECT_VISUAL = "visual.ply"
 OBJECT_URDF = "object.urdf"
 COLLISION = "collision"
+LOCK = ".phirie.lock"
+
+# The top-level names a run writes (``io.output_folder``: a folder holding one of them and no
+# manifest of an earlier run is not an output folder).
+TOP_LEVEL = (MANIFEST, CAMERAS, SCENE_MJCF, SCENE_USD, REPORT, BACKGROUND, OBJECTS, "observe", "background")
 
 
 # The folders the stages write files into (globs, relative to the output folder): where an

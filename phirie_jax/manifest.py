@@ -31,6 +31,15 @@ from phirie_jax.layout import MANIFEST, resolve
 
 SCHEMA = "phirie/1"
 
+# The stages of a conversion in their order, as ``stages`` records them: ``pending`` (this run will
+# run it), ``running`` (started, not finished: the run was killed or still runs), ``complete``,
+# ``failed`` (``failed_stage`` says why) or ``outdated`` (an earlier stage ran again after it).
+STAGE_NAMES = ("frame", "observe", "objects", "physics", "background")
+PENDING, RUNNING, COMPLETE, FAILED, OUTDATED = "pending", "running", "complete", "failed", "outdated"
+# The section each stage writes last (how a manifest without ``stages`` tells what ran).
+LAST_WRITTEN = {"frame": "frame", "observe": "instances", "objects": "objects", "physics": "physics",
+                "background": "background"}
+
 
 def _plain(value: Any) -> Any:
     """NumPy scalars/arrays and paths → JSON values; non-finite floats → None."""
@@ -142,6 +151,39 @@ class Manifest:
         found.update({int(i["id"]): i["support"] for i in self.data.get("instances") or [] if i.get("support")})
         return found
 
+    # --- which stages finished ---
+
+    def stage_status(self) -> dict[str, str]:
+        """Stage name → its status (``STAGE_NAMES``; "not run" for a stage never started). A folder
+        written without ``stages`` (by an earlier version, or by a stage called on its own): a stage
+        is complete when the section it writes last is there and it is not the ``failed_stage``."""
+        recorded = self.data.get("stages")
+        if isinstance(recorded, dict):
+            return {name: str(recorded.get(name, "not run")) for name in STAGE_NAMES}
+        failed = (self.data.get("failed_stage") or {}).get("stage")
+        return {name: FAILED if name == failed else COMPLETE if self.data.get(section) is not None else "not run"
+                for name, section in LAST_WRITTEN.items()}
+
+    def mark_stage(self, name: str, status: str) -> None:
+        if name not in STAGE_NAMES:
+            raise ValueError(f"unknown stage {name!r}")
+        stages = self.data.get("stages")
+        self.data["stages"] = {**(stages if isinstance(stages, dict) else {}), name: status}
+
+    def unfinished(self, stages: tuple[str, ...] = STAGE_NAMES) -> dict[str, str]:
+        """The stages of ``stages`` that are not complete, with their status."""
+        status = self.stage_status()
+        return {name: status[name] for name in stages if status[name] != COMPLETE}
+
+    def require_complete(self, stages: tuple[str, ...], needed_by: str) -> None:
+        """``SceneInputError`` naming the first of ``stages`` that did not complete (``needed_by``
+        says what needs them, e.g. "the drop tests")."""
+        unfinished = self.unfinished(stages)
+        if unfinished:
+            name, status = next(iter(unfinished.items()))
+            raise SceneInputError(self.path, "stages", f"the {name} stage {describe_status(status)} (expected a "
+                                  f"complete conversion for {needed_by}: run phirie convert again)")
+
     def set(self, section: str, value: Any) -> None:
         """Replace one section (``schema`` and ``timings`` have their own methods)."""
         if section in ("schema", "timings"):
@@ -178,6 +220,14 @@ class Manifest:
         ordered = {"schema": SCHEMA, **{k: v for k, v in self.data.items() if k != "schema"}}
         write_text(self.path, json.dumps(ordered, indent=2, allow_nan=False) + "\n")
         return self.path
+
+
+def describe_status(status: str) -> str:
+    """A stage's status as the end of a sentence ("the physics stage ...")."""
+    return {RUNNING: "did not finish (the run was killed, or is still running)", FAILED: "failed",
+            PENDING: "did not start (an earlier stage did not finish)", OUTDATED: "is outdated (an earlier "
+            "stage ran again after it)", "not run": "has not run", "unknown": "did not finish (no record of "
+            "the conversion's end)"}.get(status, f"is {status}")
 
 
 def to_dict(config) -> dict:

@@ -10,12 +10,15 @@ an object it removed. The cameras, in the world frame, are written beside the re
 in the manifest (``failed_stage``) and raised as a ``StageError`` (bad input stays a
 ``SceneInputError``); the stages after it do not run.
 
-Before the output folder is created or touched, the inputs are checked (``check_output``,
-``check_inputs``): a Gaussian PLY given as the scene, a missing Gaussian PLY or cameras, a mask
-source or surface the scene cannot give, an output path that is a file or the scene folder
-itself. A bad input found only later by a stage removes the output folder when this run
-created it, so an input error never leaves a partial output behind. A run first removes the
-temporaries an interrupted earlier run left in the output folder (``io.atomic``).
+Before the output folder is created or touched, the inputs and the folder are checked
+(``check_inputs``; ``io.output_folder``: never into a capture, the scene folder or a folder of
+files no run of ours wrote; no input inside it): a Gaussian PLY given as the scene, a missing
+Gaussian PLY or cameras, a mask source or surface the scene cannot give. The run then holds the
+folder's lock (one run at a time) and records each stage's status in the manifest (``stages``:
+a killed run leaves its stage ``running``, so a half-converted folder never passes as converted).
+A bad input found only later by a stage removes the output folder when this run created it, so an
+input error never leaves a partial output behind. A run first removes the temporaries an
+interrupted earlier run left in the output folder (``io.atomic``).
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ from phirie_jax.io.atomic import remove_temporaries
 from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.io.scene import find_gaussians, load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
-from phirie_jax.manifest import Manifest
+from phirie_jax.io.output_folder import check_inputs_outside, check_output_folder, locked
+from phirie_jax.manifest import COMPLETE, FAILED, OUTDATED, PENDING, RUNNING, STAGE_NAMES, Manifest
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.masks import check_mask_source
 from phirie_jax.progress import task
@@ -169,9 +173,10 @@ def _run_stage(name: str, stage: Callable[[Run], Run], run: Run, progress, creat
     this conversion created (no partial output behind)."""
     if progress is not None:
         progress(name)
+    _mark(run.out_dir, name, RUNNING)
     try:
         with task(name):
-            return stage(run)
+            run = stage(run)
     except SceneInputError as err:
         if created is not None:
             shutil.rmtree(created, ignore_errors=True)
@@ -181,6 +186,14 @@ def _run_stage(name: str, stage: Callable[[Run], Run], run: Run, progress, creat
     except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
         _failed(run.out_dir, name, err)
         raise StageError(name, err) from err
+    _mark(run.out_dir, name, COMPLETE)
+    return run
+
+
+def _mark(out_dir: Path, name: str, status: str) -> None:
+    manifest = Manifest.load_or_create(out_dir)
+    manifest.mark_stage(name, status)
+    manifest.write()
 
 
 def _physics_beside_background(run: Run, progress, created: Path | None) -> Run:
@@ -234,21 +247,6 @@ def refuse_lone_ply(scene_path: Path) -> None:
     raise SceneInputError(path, None, f"a Gaussian PLY alone has no cameras (expected {hint})")
 
 
-def check_output(out_dir: Path, scene_path: Path) -> None:
-    """``--out`` can be a folder of outputs: not a file (nor under one), not the scene folder."""
-    out_dir = Path(out_dir)
-    for path in (out_dir, *out_dir.absolute().parents):
-        if path.exists():
-            if not path.is_dir():
-                what = "is a file" if path == out_dir else f"{path} is a file"
-                raise OptionError("--out", f"{what} (expected a folder: a new one or an earlier run's output)",
-                                  str(out_dir))
-            break
-    if out_dir.exists() and out_dir.resolve() == Path(scene_path).resolve():
-        raise OptionError("--out", "the scene folder itself (expected another folder: the outputs would "
-                          "overwrite the scene's own transforms.json)", str(out_dir))
-
-
 def check_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
                  stages: tuple[str, ...] | None) -> None:
     """What the stages to run need from the inputs, checked before the output folder is touched;
@@ -284,19 +282,42 @@ def _clean(out_dir: Path) -> None:
         remove_temporaries(folder)
 
 
-def _start(scene: SceneInput, out_dir: Path) -> None:
-    """The output folder's manifest with the scene it converts."""
+def _start(scene: SceneInput, out_dir: Path, selected: list[str]) -> None:
+    """The output folder's manifest with the scene it converts and the stages this run will run;
+    a stage after the first of them that this run leaves alone was made from what this run
+    replaces: outdated."""
     manifest = Manifest.load_or_create(out_dir)
     manifest.set("scene", {"path": str(scene.root), "layout": scene.layout,
                            "gaussians": str(scene.gaussians_path), "cameras": len(scene.cameras)})
     manifest.data.pop("failed_stage", None)
+    status = manifest.stage_status()
+    first = min(STAGE_NAMES.index(n) for n in selected)
+    for name in STAGE_NAMES[first:]:
+        if name in selected:
+            manifest.mark_stage(name, PENDING)
+        elif status[name] == COMPLETE:
+            manifest.mark_stage(name, OUTDATED)
     manifest.write()
 
 
 def _failed(out_dir: Path, stage: str, err: BaseException) -> None:
     manifest = Manifest.load_or_create(out_dir)
     manifest.set("failed_stage", {"stage": stage, "error": f"{type(err).__name__}: {err}"})
+    manifest.mark_stage(stage, FAILED)
     manifest.write()
+
+
+def _inputs(scene: SceneInput, masks: str | Path | None, config: ConvertConfig) -> list[tuple[str, Path | None]]:
+    """What the run reads, named for a message (``check_inputs_outside``)."""
+    named = [("the Gaussians", scene.gaussians_path), ("the surface mesh", scene.surface_mesh),
+             ("the cameras", scene.camera_source)]
+    if masks not in (None, "auto", "files"):
+        named.append(("the masks folder", Path(masks)))
+    if config.background.targets.external is not None:
+        named.append(("the inpainting targets", Path(config.background.targets.external)))
+    named += [("the image", c.image_path) for c in scene.cameras]
+    named += [("the mask", m) for m in scene.masks or () if m is not None]
+    return named
 
 
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
@@ -311,24 +332,28 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     start = time.perf_counter()
     frame.checked()
     out_dir = Path(out_dir)
-    check_output(out_dir, Path(scene_dir))
+    scene_root = Path(scene_dir).parent if Path(scene_dir).is_file() else Path(scene_dir)
     refuse_lone_ply(Path(scene_dir))
+    check_output_folder(out_dir, scene_root)
     with outside_paths_allowed(allow_outside_paths):
         scene = load_scene(scene_dir, gaussians=gaussians, surface=surface)
         run = Run(scene, out_dir, config, merged(scene_frame_config(scene.root), frame), masks)
         check_inputs(scene, config, masks, stages)
+        check_inputs_outside(out_dir, _inputs(scene, masks, config))
         created = _missing_root(out_dir)
-        _clean(out_dir)
-        _start(scene, run.out_dir)
-        selected = [n for n in STAGES if stages is None or n == "frame" or n in stages]
-        for name in selected:
-            if name == "background" and "physics" in selected:
-                continue   # ran beside the physics stage's collision
-            if name == "physics" and "background" in selected:
-                run = _physics_beside_background(run, progress, created)
-            else:
-                run = _run_stage(name, STAGES[name], run, progress, created)
-    manifest = Manifest.load_or_create(run.out_dir)
-    manifest.record_timing("convert", time.perf_counter() - start)
-    manifest.write()
+        with locked(out_dir):
+            check_output_folder(out_dir, scene_root)   # as this run holds it
+            _clean(out_dir)
+            selected = [n for n in STAGES if stages is None or n == "frame" or n in stages]
+            _start(scene, run.out_dir, selected)
+            for name in selected:
+                if name == "background" and "physics" in selected:
+                    continue   # ran beside the physics stage's collision
+                if name == "physics" and "background" in selected:
+                    run = _physics_beside_background(run, progress, created)
+                else:
+                    run = _run_stage(name, STAGES[name], run, progress, created)
+            manifest = Manifest.load_or_create(run.out_dir)
+            manifest.record_timing("convert", time.perf_counter() - start)
+            manifest.write()
     return manifest.data

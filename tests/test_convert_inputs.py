@@ -133,6 +133,8 @@ KEPT = ["notes.tmp", ".notes.tmp", ".mesh.obj.ABCDEFGH.tmp", ".mesh.obj.abc.tmp"
 def test_a_run_removes_the_temporaries_a_killed_run_left_and_nothing_else(scene, tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "STAGES", {"frame": lambda run: run})
     out = tmp_path / "out"
+    out.mkdir()
+    (out / "manifest.json").write_text('{"schema": "phirie/1"}')   # the first file a run writes
     for name in STALE + KEPT:
         (out / name).parent.mkdir(parents=True, exist_ok=True)
         (out / name).write_text("x")

@@ -41,12 +41,14 @@ def outside_paths_allowed(allowed: bool = True) -> Iterator[None]:
         _outside_allowed.reset(token)
 
 
-def check_inside(image_path: Path, folder: Path, source: Path, field: str, written: str) -> None:
+def check_inside(image_path: Path, folder: Path, source: Path, field: str, written: str,
+                 scene_root: Path | None = None) -> None:
     """Refuse an image a camera file (``source``) names outside ``folder``, the folder its paths are
-    relative to: a ``transforms.json`` frame or a COLMAP image name of ``../../etc/hostname`` or
-    ``/etc/hostname`` would otherwise be opened and read. ``written`` is the path as the file
-    has it. The test is on the paths as written (``..`` resolved, symbolic links not followed:
-    a link inside the folder is the folder's own choice). ``outside_paths_allowed`` lifts it.
+    relative to, or that is a symbolic link (itself or a folder on its way) to a file outside
+    ``scene_root`` (default ``folder``): a ``transforms.json`` frame or a COLMAP image name of
+    ``../../etc/hostname`` or ``/etc/hostname``, or ``images/x.jpg`` linking to ``/etc/passwd``, would
+    otherwise be opened and read. ``written`` is the path as the file has it. The test is on the
+    path as written (``..`` resolved), then on where its links lead. ``outside_paths_allowed`` lifts it.
     """
     if _outside_allowed.get():
         return
@@ -54,6 +56,18 @@ def check_inside(image_path: Path, folder: Path, source: Path, field: str, writt
     if os.path.commonpath([folder, image]) != folder:
         raise SceneInputError(source, field, f"{written!r} is outside {folder} (expected an image inside the "
                               "scene folder; --allow-outside-paths reads it anyway)")
+    refuse_link_outside(Path(image), Path(scene_root or folder), source, field, written)
+
+
+def refuse_link_outside(path: Path, scene_root: Path, source: Path | str, field: str, written: str) -> None:
+    """Refuse ``path`` when following its symbolic links leads outside ``scene_root`` (unless
+    ``outside_paths_allowed``)."""
+    if _outside_allowed.get():
+        return
+    root, real = os.path.realpath(scene_root), os.path.realpath(path)
+    if os.path.commonpath([root, real]) != root:
+        raise SceneInputError(source, field, f"{written!r} is a symbolic link to {real}, outside {root} (expected "
+                              "a file inside the scene folder; --allow-outside-paths reads it anyway)")
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
@@ -75,8 +89,12 @@ def rigid(matrix: np.ndarray, path: str | Path, field: str, tolerance: float = R
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape == (3, 4):
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise SceneInputError(path, field, f"expected a finite 4x4 (or 3x4) matrix, got shape {m.shape}")
+    if m.shape != (4, 4):
+        raise SceneInputError(path, field, f"expected a 4x4 (or 3x4) matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        row, col = (int(i) for i in np.argwhere(~np.isfinite(m))[0])
+        raise SceneInputError(path, field, f"non-finite value {m[row, col]} at row {row}, column {col} "
+                              f"({int((~np.isfinite(m)).sum())} in all; expected finite numbers)")
     if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
         raise SceneInputError(path, field, f"last row {m[3].tolist()} (expected 0 0 0 1)")
     rot = m[:3, :3]

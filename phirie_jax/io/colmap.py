@@ -76,14 +76,15 @@ class _Image:
 
 
 def read_colmap_model(
-    sparse_dir: str | Path, image_dir: str | Path | None = None
+    sparse_dir: str | Path, image_dir: str | Path | None = None, scene_root: str | Path | None = None
 ) -> tuple[list[Camera], np.ndarray | None]:
     """Cameras (sorted by image name) and the (P, 3) float64 point positions, or None.
 
     Each of ``cameras``, ``images`` and ``points3D`` is read from its ``.bin`` file when
     present, else from its ``.txt`` file (COLMAP's preference); ``points3D`` is optional.
     When ``image_dir`` is given, ``Camera.image_path`` is ``image_dir / name`` (absolute); a name
-    leading outside ``image_dir`` is refused unless ``camera.outside_paths_allowed``.
+    leading outside ``image_dir``, or a symbolic link to a file outside ``scene_root`` (default:
+    ``image_dir``), is refused unless ``camera.outside_paths_allowed``.
     """
     sparse_dir = Path(sparse_dir)
     cameras_path = _find(sparse_dir, "cameras", required=True)
@@ -103,7 +104,7 @@ def read_colmap_model(
             )
         seen[image.name] = image.image_id
         if root is not None:
-            check_inside(root / image.name, root, images_path, f"{where}: name", image.name)
+            check_inside(root / image.name, root, images_path, f"{where}: name", image.name, scene_root)
         cam = intrinsics[image.camera_id]
         K, distortion = _intrinsics(cam)
         cameras.append(Camera(

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.errors import SceneInputError
+from phirie_jax.io.camera import refuse_link_outside
 from phirie_jax.io.colmap import read_colmap_model
 from phirie_jax.io.gaussian_checks import degenerate_counts, degenerate_mask, describe_counts
 from phirie_jax.io.images import image_size
@@ -75,19 +76,20 @@ def _cameras(root: Path) -> tuple[str, list[Camera], Path | None, np.ndarray | N
     dslr = root / "dslr"
     undistorted = dslr / "nerfstudio" / "transforms_undistorted.json"
     if undistorted.is_file():
-        cams = read_transforms_json(undistorted, image_root=dslr / "resized_undistorted_images")
+        cams = read_transforms_json(undistorted, image_root=dslr / "resized_undistorted_images", scene_root=root)
         return "scannetpp", cams, undistorted, None
     if (dslr / "colmap").is_dir():
-        cams, pts = read_colmap_model(dslr / "colmap", image_dir=dslr / "resized_images")
+        cams, pts = read_colmap_model(dslr / "colmap", image_dir=dslr / "resized_images", scene_root=root)
         images = next(p for p in (dslr / "colmap" / "images.bin", dslr / "colmap" / "images.txt") if p.is_file())
         return "scannetpp", cams, images, pts
     for sparse in (root / "sparse" / "0", root / "sparse"):
         if any((sparse / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
-            cams, pts = read_colmap_model(sparse, image_dir=root / "images")
+            cams, pts = read_colmap_model(sparse, image_dir=root / "images", scene_root=root)
             images = next(p for p in (sparse / "images.bin", sparse / "images.txt") if p.is_file())
             return "colmap", cams, images, pts
     if (root / "transforms.json").is_file():
-        return "nerfstudio", read_transforms_json(root / "transforms.json"), root / "transforms.json", None
+        return ("nerfstudio", read_transforms_json(root / "transforms.json", scene_root=root),
+                root / "transforms.json", None)
     return "gaussians", [], None, None
 
 
@@ -113,6 +115,7 @@ def _masks(root: Path, cameras: list[Camera]) -> tuple[Path | None, ...] | None:
         if not path.is_file():
             masks.append(None)
             continue
+        refuse_link_outside(path, root, path, "mask", str(path.relative_to(root)))
         width, height = image_size(path)
         if (width, height) != (cam.width, cam.height):
             raise SceneInputError(path, "mask size",

@@ -37,7 +37,8 @@ _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def read_transforms_json(
-    path: str | Path, image_root: str | Path | None = None, *, skip_bad: bool = False
+    path: str | Path, image_root: str | Path | None = None, *, skip_bad: bool = False,
+    scene_root: str | Path | None = None,
 ) -> list[Camera]:
     """Cameras of every frame (and every ``test_frames`` entry), sorted by name.
 
@@ -45,7 +46,8 @@ def read_transforms_json(
     ScanNet++'s bare file names need). Frames flagged ``is_bad`` are dropped only when
     ``skip_bad``. ``Camera.image_path`` is the absolute image path (with the extension
     found on disk for Blender's extension-less paths). A path outside that folder (``..`` or
-    absolute) is refused unless ``camera.outside_paths_allowed``.
+    absolute), or a symbolic link to a file outside ``scene_root`` (default: that folder), is
+    refused unless ``camera.outside_paths_allowed``.
     """
     path = Path(path)
     meta = read_json_object(path, "a JSON object with a 'frames' list")
@@ -68,12 +70,13 @@ def read_transforms_json(
     cameras = []
     for (where, frame), p in zip(entries, parts):
         image_path = Path(os.path.abspath(Path(*p) if p[0] == "/" else base.joinpath(*p)))
-        check_inside(image_path, base, path, f"{where}: file_path", frame["file_path"])
+        check_inside(image_path, base, path, f"{where}: file_path", frame["file_path"], scene_root)
         name = p[-1] if p[0] == "/" else "/".join(p[1:] if strip else p)
         if not image_path.is_file():
             for ext in _IMAGE_EXTENSIONS:
                 if image_path.with_name(image_path.name + ext).is_file():
                     image_path, name = image_path.with_name(image_path.name + ext), name + ext
+                    check_inside(image_path, base, path, f"{where}: file_path", frame["file_path"], scene_root)
                     break
         K, width, height, model, distortion = _intrinsics(path, where, frame, meta, image_path)
         cameras.append(Camera(
@@ -165,15 +168,17 @@ def _intrinsics(path: Path, where: str, frame: dict, meta: dict, image_path: Pat
     """(K (3, 3), width, height, model, distortion (D,)) of one frame."""
     fields = _Fields(path, where, frame, meta)
     width, height = _image_size(fields, image_path)
-    fx = _focal(fields, "x", width)
+    fx, fx_field = _focal(fields, "x", width)
     if fx is None:
         raise SceneInputError(
             path, f"{where}: fl_x", "missing (expected fl_x or camera_angle_x, here or at the top level)"
         )
-    fy = _focal(fields, "y", height)
-    fy = fx if fy is None else fy  # square pixels unless told otherwise
-    if fx <= 0 or fy <= 0:
-        raise SceneInputError(path, f"{where}: fl_x", f"focal lengths {fx}, {fy} (expected positive)")
+    fy, fy_field = _focal(fields, "y", height)
+    if fy is None:  # square pixels unless told otherwise
+        fy, fy_field = fx, fx_field
+    for value, field in ((fx, fx_field), (fy, fy_field)):
+        if value <= 0:
+            raise SceneInputError(path, field, f"{value} (expected a positive focal length in pixels)")
     cx = fields.number("cx", width / 2)  # instant-ngp / Blender default
     cy = fields.number("cy", height / 2)
     model, distortion = _lens(fields)
@@ -197,18 +202,21 @@ def _image_size(fields: _Fields, image_path: Path) -> tuple[int, int]:
     return size[0], size[1]
 
 
-def _focal(fields: _Fields, axis: str, pixels: int) -> float | None:
-    """Focal length in pixels along ``axis`` from ``fl_<axis>`` or ``camera_angle_<axis>``; None if neither."""
+def _focal(fields: _Fields, axis: str, pixels: int) -> tuple[float | None, str | None]:
+    """(focal length in pixels along ``axis`` from ``fl_<axis>`` or ``camera_angle_<axis>``, the field
+    it came from as messages name it: ``frames[3]: fl_x`` or the top level's ``fl_x``); (None, None)
+    if neither."""
     for source in (fields.frame, fields.meta):  # a frame's own value, in either form, beats the top level
         if f"fl_{axis}" in source:
-            return _number(source[f"fl_{axis}"], fields.path, fields.get(f"fl_{axis}")[1])
+            field = fields.get(f"fl_{axis}")[1] if source is fields.frame else f"fl_{axis}"
+            return _number(source[f"fl_{axis}"], fields.path, field), field
         if f"camera_angle_{axis}" in source:
-            field = fields.get(f"camera_angle_{axis}")[1]
+            field = fields.get(f"camera_angle_{axis}")[1] if source is fields.frame else f"camera_angle_{axis}"
             angle = _number(source[f"camera_angle_{axis}"], fields.path, field)
             if not 0 < angle < math.pi:
                 raise SceneInputError(fields.path, field, f"{angle} (expected a field of view in radians, 0..pi)")
-            return 0.5 * pixels / math.tan(0.5 * angle)
-    return None
+            return 0.5 * pixels / math.tan(0.5 * angle), field
+    return None, None
 
 
 def _lens(fields: _Fields) -> tuple[str, np.ndarray]:

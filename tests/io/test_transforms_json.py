@@ -280,7 +280,9 @@ def test_rounded_pose_is_snapped_to_a_rotation(tmp_path):
     [
         (np.diag([2.0, 2.0, 2.0, 1.0]).tolist(), "rotation part is not a rotation"),
         (np.diag([1.0, 1.0, -1.0, 1.0]).tolist(), "rotation part is not a rotation"),
-        ([[1, 0, 0], [0, 1, 0]], "expected a finite 4x4"),
+        ([[1, 0, 0], [0, 1, 0]], "expected a 4x4 (or 3x4) matrix, got shape (2, 3)"),
+        ([[1, 0, 0, 0], [0, 1, 0, float("nan")], [0, 0, 1, 0], [0, 0, 0, 1]],
+         "non-finite value nan at row 1, column 3 (1 in all; expected finite numbers)"),
         ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], "last row"),
         (None, "transform_matrix: missing"),
         ([[1, 0, "x", 0]], "expected a 4x4 matrix of numbers"),
@@ -339,3 +341,18 @@ def test_dot_dot_that_stays_inside_the_folder_is_fine(tmp_path):
     path = write_json(tmp_path / "transforms.json", {"fl_x": 10, "w": 8, "h": 6, "frames": [
         {"file_path": "images/../frames/a.png", "transform_matrix": IDENTITY_AT_Z5}]})
     assert read_transforms_json(path)[0].image_path == tmp_path / "frames" / "a.png"
+
+
+@pytest.mark.parametrize("meta, field", [
+    ({"fl_x": 0, "w": 640, "h": 480}, "transforms.json: fl_x: 0.0 (expected a positive focal length"),
+    ({"fl_x": 500, "fl_y": -1, "w": 640, "h": 480}, "transforms.json: fl_y: -1.0 (expected"),
+    ({"w": 640, "h": 480}, "transforms.json: frames[0]: fl_x: 0.0 (expected"),
+], ids=["top-level-fl_x", "top-level-fl_y", "frame-fl_x"])
+def test_a_bad_focal_length_is_named_where_it_is(tmp_path, meta, field):
+    frame = {"file_path": "a.png", "transform_matrix": IDENTITY_AT_Z5}
+    if "fl_x" not in meta:
+        frame["fl_x"] = 0
+    path = write_json(tmp_path / "transforms.json", {**meta, "frames": [frame]})
+    with pytest.raises(SceneInputError) as err:
+        read_transforms_json(path)
+    assert field in str(err.value)

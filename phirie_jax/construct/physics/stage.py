@@ -81,10 +81,16 @@ def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: Physi
 
 def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manifest: Manifest | None = None) -> dict:
     """Drop-test every exported object (collision parts read from their files) in one batch;
-    writes ``drop_test`` and ``checks.settling`` of each and returns the manifest."""
+    writes ``drop_test`` and ``checks.settling`` of each and returns the manifest. On an exported
+    folder alone (no ``manifest`` given: not from inside the physics stage), the objects and
+    physics stages must have completed (``SceneInputError`` naming the one that did not)."""
     out_dir = Path(out_dir)
     config = config or PhysicsConfig()
-    manifest = manifest or Manifest.load_or_create(out_dir)
+    if manifest is None:
+        if not (out_dir / layout.MANIFEST).is_file():
+            raise SceneInputError(out_dir, None, f"no {layout.MANIFEST} (expected a phirie convert output folder)")
+        manifest = Manifest.load_or_create(out_dir)
+        manifest.require_complete(("objects", "physics"), "the drop tests")
     objects = manifest.require("objects", "the object and physics stages")
     with manifest.timed("droptest"):
         entries, bodies = exported_bodies(objects, out_dir, manifest.up(), config)
