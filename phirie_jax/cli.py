@@ -402,11 +402,11 @@ def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig =
         config: physics and drop-test parameters.
     """
     from phirie_jax.construct.physics.stage import run_droptest
-    from phirie_jax.io.output_folder import OutputLock
+    from phirie_jax.io.output_folder import locked
 
     if not out.is_dir():
         raise SceneInputError(out, None, "not a folder (expected a phirie convert output folder)")
-    with OutputLock.acquire(out):
+    with locked(out):
         _print_objects(run_droptest(out, config))
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import shutil
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -36,17 +37,17 @@ from phirie_jax import layout
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.physics.config import PhysicsConfig
-from phirie_jax.errors import OptionError, SceneInputError, StageError
+from phirie_jax.errors import SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig, merged, scene_frame_config
 from phirie_jax.frame.resolve import SceneFrame, resolve_frame, with_known_size
 from phirie_jax.io.atomic import remove_temporaries
 from phirie_jax.io.camera import outside_paths_allowed
+from phirie_jax.io.output_folder import check_inputs_outside, check_output_folder, locked
 from phirie_jax.io.scene import find_gaussians, load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
-from phirie_jax.io.output_folder import check_inputs_outside, check_output_folder, locked
 from phirie_jax.manifest import COMPLETE, FAILED, OUTDATED, PENDING, RUNNING, STAGE_NAMES, Manifest
 from phirie_jax.observe.config import ObserveConfig
-from phirie_jax.observe.masks import check_mask_source
+from phirie_jax.observe.masks import check_mask_source, file_mask_ids
 from phirie_jax.progress import task
 from phirie_jax.report.config import ReportConfig
 from phirie_jax.types import SceneInput
@@ -248,7 +249,7 @@ def refuse_lone_ply(scene_path: Path) -> None:
 
 
 def check_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
-                 stages: tuple[str, ...] | None) -> None:
+                 stages: tuple[str, ...] | None, frame: FrameConfig = FrameConfig()) -> None:
     """What the stages to run need from the inputs, checked before the output folder is touched;
     the errors are the ones the stages would raise later."""
     def runs(name: str) -> bool:
@@ -264,6 +265,25 @@ def check_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | N
     external = config.background.targets.external
     if runs("background") and external is not None and not Path(external).is_dir():
         raise SceneInputError(external, "targets", "not a folder (expected <image stem>.png files)")
+    if runs("observe"):
+        _check_known_size(scene, masks, frame)
+
+
+def _check_known_size(scene: SceneInput, masks: str | Path | None, frame: FrameConfig) -> None:
+    """``--known-size ID=M``: with mask files (their values are the instance ids) the id is checked
+    now; otherwise observation numbers the instances, and the run says at the start that the id
+    is checked after it."""
+    known = frame.known_size_of()
+    if known is None:
+        return
+    ids = file_mask_ids(scene, masks)
+    if ids is None:
+        print(f"phirie: note: --known-size {frame.known_size}: instance {known[0]} is checked after observation "
+              "(its instance ids are known only then)", file=sys.stderr, flush=True)
+    elif known[0] not in ids:
+        listed = ", ".join(map(str, sorted(ids))) or "none"
+        raise SceneInputError(scene.root / "masks", "--known-size", f"no instance {known[0]} in the mask files "
+                              f"(their instance ids: {listed})")
 
 
 def _missing_root(out_dir: Path) -> Path | None:
@@ -338,7 +358,7 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     with outside_paths_allowed(allow_outside_paths):
         scene = load_scene(scene_dir, gaussians=gaussians, surface=surface)
         run = Run(scene, out_dir, config, merged(scene_frame_config(scene.root), frame), masks)
-        check_inputs(scene, config, masks, stages)
+        check_inputs(scene, config, masks, stages, run.frame_config)
         check_inputs_outside(out_dir, _inputs(scene, masks, config))
         created = _missing_root(out_dir)
         with locked(out_dir):

@@ -124,6 +124,22 @@ def check_mask_source(scene: SceneInput, masks: str | Path | None) -> None:
     _mask_pngs(Path(masks))
 
 
+def file_mask_ids(scene: SceneInput, masks: str | Path | None) -> set[int] | None:
+    """The instance ids the scene's mask files hold when observation reads them (``masks`` is
+    "files", or None with a ``masks/`` folder); None when observation gives the ids (automatic
+    masks, an external segmenter's per-image labels, ScanNet++ annotations)."""
+    import cv2
+
+    if masks not in (None, "files") or scene.masks is None:
+        return None
+    ids: set[int] = set()
+    for path in scene.masks:
+        image = None if path is None else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is not None:
+            ids.update(int(k) for k in np.unique(image) if k != 0)
+    return ids
+
+
 def _mask_pngs(folder: Path) -> list[Path]:
     """The label images of an external segmenter's folder; ``SceneInputError`` if there are none."""
     if not folder.is_dir():
