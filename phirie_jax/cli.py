@@ -132,6 +132,11 @@ def synth(out: Annotated[Path, tyro.conf.Positional], seed: int = 0,
     check_option("--fit-steps", fit_steps, AT_LEAST_ONE)
     from rich.console import Console
 
+    from phirie_jax.io.output_folder import check_scene_target
+    from phirie_jax.synthetic.scene import TRUTH_OBJECTS
+
+    check_scene_target(out, TRUTH_OBJECTS)
+
     from phirie_jax.synthetic import synthesize
 
     if fit_steps is not None and not fitted:

@@ -295,3 +295,14 @@ def test_known_size_with_automatic_masks_says_when_it_is_checked(captures, tmp_p
     pipeline.run_convert(captures[0], tmp_path / "out", masks="auto", frame=pipeline.FrameConfig(known_size="99=0.1"))
     assert ("phirie: note: --known-size 99=0.1: instance 99 is checked after observation"
             in capsys.readouterr().err)
+
+
+def test_synth_never_writes_over_a_capture(captures, tmp_path, capsys):
+    """``phirie synth OUT`` writes a new, an empty or its own earlier folder, never another."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "transforms.json").write_text("{}")
+    assert main(["synth", str(other), "--preset", "tiny"]) == 2
+    assert capsys.readouterr().err == (f"phirie: error: {other}: holds files (transforms.json) and is not an earlier "
+                                       "output of this command (expected a new or empty folder); nothing was written\n")
+    assert sorted(os.listdir(other)) == ["transforms.json"] and (other / "transforms.json").read_text() == "{}"

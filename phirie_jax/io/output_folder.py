@@ -32,7 +32,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from phirie_jax import layout
-from phirie_jax.errors import OptionError
+from phirie_jax.errors import OptionError, SceneInputError
 from phirie_jax.types import GAUSSIAN_NAMES
 
 # What marks a folder as a capture (``io.scene`` reads these): Gaussians, cameras, images.
@@ -127,6 +127,19 @@ def check_inputs_outside(out_dir: Path, inputs: Iterable[tuple[str, Path | None]
         if path is not None and _inside(path, out_dir):
             _refuse(out_dir, f"holds {what} {path} (expected the inputs outside the output folder: "
                     "the run would write where it reads)")
+
+
+def check_scene_target(folder: Path, earlier: str) -> None:
+    """A command that writes a whole scene folder (``phirie synth``, ``phirie capture``) writes into
+    a new or empty folder, or one it wrote before (``earlier`` names a file only it writes there);
+    anything else is refused before any work, so a capture is never overwritten."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise SceneInputError(folder, None, "is a file (expected a new or empty folder)")
+    if folder.is_dir() and any(folder.iterdir()) and not (folder / earlier).is_file():
+        found = ", ".join(sorted(p.name + ("/" if p.is_dir() else "") for p in folder.iterdir())[:4])
+        raise SceneInputError(folder, None, f"holds files ({found}) and is not an earlier output of this command "
+                              "(expected a new or empty folder); nothing was written")
 
 
 # --- one run at a time ---------------------------------------------------------------------------

@@ -40,6 +40,8 @@ CONTACT_HEIGHT = 0.004  # object vertices this close to the table form its conta
 PLACEMENT_GAP = 0.02    # minimum clearance between object footprints
 TABLE_MARGIN = 0.06     # keep objects this far inside the tabletop edge
 
+TRUTH_OBJECTS = "gt/objects.json"   # the ground truth: what marks a folder as written by phirie synth
+
 
 @dataclasses.dataclass(frozen=True)
 class SynthConfig:
@@ -237,7 +239,7 @@ def write_ground_truth(scene: SyntheticScene, out: Path) -> None:
     for o in scene.objects:
         write_mesh(out / "gt" / "objects" / str(o.id) / "canonical.obj", o.shape.mesh)
         write_mesh(out / "gt" / "objects" / str(o.id) / "world.obj", o.world_mesh())
-    write_text(out / "gt" / "objects.json", json.dumps(ground_truth_json(scene), indent=2))
+    write_text(out / TRUTH_OBJECTS, json.dumps(ground_truth_json(scene), indent=2))
     write_gaussian_ply(out / "gt" / "background.ply", scene.background.data)
     buf = io.BytesIO()
     np.save(buf, scene.capture.labels)
