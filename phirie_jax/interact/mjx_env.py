@@ -33,8 +33,8 @@ Batching worlds: ``jax.vmap(menv.step)`` on an accelerator. On the CPU, ``over_w
 runs the worlds one after another inside the compiled program (``jax.lax.map``): jaxlib 0.10's
 batched LAPACK Cholesky (MJX factors the mass matrix, the Newton Hessian and the implicit
 integrator's matrix) splits its batch over XLA:CPU's intra-op thread pool and blocks waiting for
-the pieces; two such calls at once on a 2-core machine block both threads for good (seen with
-the demo scene's 8 worlds: every thread asleep in ``ParallelBatchMap``).
+the pieces; two such calls at once on a 2-core machine block both threads for good (every thread
+asleep in ``ParallelBatchMap``).
 
 Rasterization inside jit needs static capacities: they are fitted once on the initial scene
 (``Renderer.fitted_config``) with ``CAPACITY_MARGIN``; ``info["render_overflow"]`` reports a
@@ -61,9 +61,8 @@ CANDIDATES = 32            # placement draws per object at reset
 CAPACITY_MARGIN = 2        # × the tile intersections the initial scene needed, per camera
 PLACEMENT_GAP = 0.01       # m between footprint circles
 # Vertices of an object's hull in the MJX model. MJX's convex collider mis-handles faces of many
-# coplanar vertices: the demo can, a 32-sided prism whose caps have 32 vertices each, was lifted
-# 1 cm and pushed 1.3 cm by the closing pads and missed 2 of 4 goals by 4 cm that MuJoCo C on
-# the same model met; at 32 vertices (caps of 16) MJX placed all 4 within 2.3 mm.
+# coplanar vertices (a can's full hull, caps of 32 vertices, is lifted and pushed by the closing
+# pads where MuJoCo C's is not); hulls of at most 32 vertices keep every face small.
 HULL_VERTICES = 32
 
 
@@ -151,6 +150,24 @@ class MjxPickPlace:
         self.radii = jnp.asarray(radii, jnp.float32)                          # (K,) footprint circles
         self.placement_range = float(placement_range)
         self._setup_rendering(cameras, width, background)
+
+    # --- sizes, as MuJoCo Playground's ``MjxEnv`` gives them ------------------------------
+
+    @property
+    def action_size(self) -> int:
+        """Length of ``step``'s action: the model's actuators (arm servos and gripper)."""
+        return int(self.mj_model.nu)
+
+    @property
+    def observation_size(self) -> dict[str, tuple[int, ...]]:
+        """Observation key → its shape in one world (traced, not run: ``jax.eval_shape``)."""
+        state = jax.eval_shape(self.reset, jax.random.PRNGKey(0))
+        return {key: tuple(value.shape) for key, value in state.obs.items()}
+
+    @property
+    def dt(self) -> float:
+        """Seconds one ``step`` simulates: ``substeps`` of the model's timestep (the control period)."""
+        return self.substeps * float(self.mj_model.opt.timestep)
 
     def task(self, object_id: int, goal) -> dict:
         """The task as data for ``reset``: ``target`` () int32 (the object's index), ``goal`` (2,)."""

@@ -15,6 +15,7 @@ import pytest
 from phirie_jax.interact.environment import Environment
 from phirie_jax.interact.mjx_env import MjxPickPlace, mjx_model, over_worlds
 from phirie_jax.interact.mjx_model import hull_collision_spec
+from phirie_jax.interact.robot import script
 from phirie_jax.interact.robot.collision import PAD_SUFFIX, colliding_geoms, finger_bodies, grip_parts_spec
 from phirie_jax.interact.robot.config import RobotConfig
 
@@ -112,6 +113,20 @@ def test_the_grasped_object_meets_the_pads_through_its_parts_and_the_rest_throug
     assert ("pad", "part_0") in _touching(inside, grip=True)
     assert ("floor", "object_9_hull") in _touching(inside, grip=True), "it still rests on its hull"
     assert not any("part" in a or "part" in b for a, b in _touching(inside, grip=True) if "pad" not in (a, b))
+
+
+def test_sizes_and_control_period_as_mujoco_playground_gives_them(env):
+    menv = MjxPickPlace(env, 1, (-0.2, 0.06), cameras=(0, "wrist"), width=32, background=BACKGROUND)
+    robot = env.robot
+    assert menv.action_size == env.model.nu == len(robot.arm_actuators) + len(robot.gripper_actuators)
+    # one step holds the action for ``substeps`` physics steps: the control period (60 Hz over 240 Hz)
+    assert menv.dt == pytest.approx(menv.substeps * env.timestep)
+    assert menv.dt == pytest.approx(1.0 / script.CONTROL_HZ, rel=0.5 * env.timestep * script.CONTROL_HZ)
+    objects = sum(o.id is not None for o in env.objects)
+    joints = len(robot.arm_qpos) + len(robot.gripper_qpos)
+    assert menv.observation_size == {"joint_pos": (joints,), "joint_vel": (joints,), "object_poses": (objects, 7),
+                                     "goal": (2,), "rgb": (2, 24, 32, 3)}
+    assert "rgb" not in MjxPickPlace(env, 1, (-0.2, 0.06)).observation_size, "no cameras, no images"
 
 
 @pytest.mark.slow

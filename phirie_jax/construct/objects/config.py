@@ -34,15 +34,14 @@ class RegistrationConfig:
         tau: clip distance of E_i(S) and of the observation-support check (paper: 3 cm).
         icp_max_correspondence: ours — ICP ignores matches farther than this (2τ).
         hypothesis_batch: hypotheses vmapped together (static; memory ∝ batch · chunk · points).
-            None: 36 on a CPU, all of them on a GPU (measured: the whole search takes 7 ms on an
-            H100 with all 648 together).
+            None: 36 on a CPU, all of them on a GPU (the whole search in one call there:
+            docs/performance.md, "Registration").
         min_obs_bucket: Q is padded to the next power of two, at least this (static buckets).
         batched_retry: ours — True scores all six up axes in the first (and only) kernel call, so
             the retry is a host-side choice; False searches +z first and calls the kernel again
-            with the other five axes only for candidates whose checks fail. Measured
-            (``experiments/bench_register.py``): on an H100 the six-axis call takes as long as the
-            +z one (7 ms), so the retry is free; on the 2-core CPU it costs 3.1× the +z call
-            (lazy: 1× when +z passes, 3.4× when it does not).
+            with the other five axes only for candidates whose checks fail. On a GPU the six-axis
+            call takes as long as the +z one, so the retry is free; on a CPU the lazy order saves
+            time when +z passes (docs/performance.md, "Registration").
         seed: sampling seed (P on the mesh, subsets of Q).
     """
 

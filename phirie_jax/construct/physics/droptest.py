@@ -170,14 +170,14 @@ def verdict(model: mujoco.MjModel, qpos0, settled, final, config: DropTestConfig
                       _tilt_deg(qpos0[3:7], final[3:7]), backend)
 
 
-AUTO_BATCH_MIN = 1024  # "auto" batches on an accelerator from this many candidates (bench_droptest, H100)
+AUTO_BATCH_MIN = 1024  # "auto" batches on an accelerator from this many candidates (docs/performance.md)
 
 
 def resolve_backend(backend: str, candidates: int | None = None) -> str:
-    """"auto": the C library below ``AUTO_BATCH_MIN`` candidates or without an accelerator (no
-    compile: 7.8 s sequential for 1024 on the H100 host, where MJX compiles 12 s and Warp builds its
-    kernels for 54 s on a fresh machine); from there MuJoCo Warp when installed on a CUDA device,
-    else MJX. ``candidates`` None (a record of the backend's kind): as for a large batch."""
+    """"auto": the C library below ``AUTO_BATCH_MIN`` candidates or without an accelerator (it
+    compiles nothing, and below that count it finishes before MJX has compiled or Warp has built its
+    kernels: docs/performance.md, "Drop tests"); from there MuJoCo Warp when installed on a CUDA
+    device, else MJX. ``candidates`` None (a record of the backend's kind): as for a large batch."""
     if backend != "auto":
         return backend
     import jax

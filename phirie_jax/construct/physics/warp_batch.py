@@ -39,8 +39,7 @@ PER_WORLD = ("body_ipos", "body_iquat", "body_mass", "body_subtreemass", "body_i
              "geom_friction", "geom_solref", "geom_solimp")
 # Features a drop-test model has none of (its one joint is free; no actuators, sensors, tendons,
 # equalities, springs or dampers; one body per world, so one island): turned off, a step launches
-# fewer kernels (H100, 1024 candidates: 0.341 s against 0.357 s, verdicts unchanged,
-# ``experiments/droptest_warp_levers.py``).
+# fewer kernels and the verdicts do not change (measured in docs/performance.md, "Drop tests").
 UNUSED_FEATURES = ("EQUALITY", "FRICTIONLOSS", "LIMIT", "SPRING", "DAMPER", "ACTUATION", "CLAMPCTRL", "SENSOR",
                    "EULERDAMP", "ISLAND")
 GRAPH_STEPS = 16        # protocol steps per captured graph (and between early-exit checks)
