@@ -190,7 +190,7 @@ class TargetsConfig:
             in front of the support plane (``plane_depth_tolerance``), is kept as rendered, not inpainted.
         plane_depth_tolerance: metres.
         external: ours — a folder of externally edited targets replacing ours (format in
-            ``construct.background.targets``); None: OpenCV.
+            ``construct.background.targets``); None: our own, made by ``inpaint``.
         write: write the targets (and masks) under ``background/targets/`` for inspection or editing.
     """
 

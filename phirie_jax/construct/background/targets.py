@@ -18,9 +18,9 @@ A frame is a crop around all of its objects' regions (``views``). In it, rendere
 
 Target = the kept render with the hole inpainted: by default with known patches of the image
 around it (``exemplar``: the support's texture continues through the hole), or by OpenCV's
-diffusion (Telea or Navier–Stokes, per channel in float). Region pixels the kept scene already explains (the tabletop seen behind the
-object from this side) keep their rendered colour. The loss mask is the region grown by
-``loss_ring_px`` (inside the image).
+diffusion (Telea or Navier–Stokes, per channel at 16 bits: ``inpaint``). Region pixels the kept
+scene already explains (the tabletop seen behind the object from this side) keep their rendered
+colour. The loss mask is the region grown by ``loss_ring_px`` (inside the image).
 
 External editor targets (``TargetsConfig.external`` = a folder). Per frame, files named by
 the camera's image stem:
