@@ -8,7 +8,7 @@ inside the image) onto a ``CARVE`` pixel gets a carve vote; onto ``INSIDE`` a ke
 
 ``view_votes`` handles one view; ``carve`` vmaps it over the views and sums. Views and
 image sizes are padded to static shapes by the caller (a padded view is all ``NO_VOTE``).
-Pixel centres are at (i + 0.5, j + 0.5) in K's image coordinates (DESIGN.md "Contracts").
+Pixel centres are at (i + 0.5, j + 0.5) in K's image coordinates (docs/architecture.md "Contracts").
 """
 
 from __future__ import annotations

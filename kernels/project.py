@@ -5,7 +5,7 @@ projection at that mean, the screen-space covariance J W Σ Wᵀ Jᵀ + 0.3·I, 
 (the "conic"), the 3σ screen radius, the tile rectangle it touches, and its colour from
 SH evaluated along the unit direction camera centre → mean.
 
-Conventions (DESIGN.md "Contracts"): OpenCV camera axes, ``world_to_camera`` 4×4,
+Conventions (docs/architecture.md "Contracts"): OpenCV camera axes, ``world_to_camera`` 4×4,
 pinhole ``K`` (skew allowed), pixel centres at (i + 0.5, j + 0.5) in K's coordinates.
 A tile t = (tx, ty) of size T covers the pixel centres in [T·tx, T·tx + T) × [T·ty, T·ty + T);
 a Gaussian touches every tile that its square [μ − r, μ + r]² overlaps.

@@ -12,7 +12,7 @@ pixel centre (z = 1)‖, i.e. measured along the ray; a voxel is updated only wh
 depth > 0 and sdf > −truncation (farther behind the surface is unknown); the
 stored value is min(1, sdf / truncation) ∈ [−1, 1] and each observation weighs 1. The
 pixel of a voxel is the one containing its projection: pixel centres at (i + 0.5, j + 0.5),
-so pixel i covers [i, i + 1) (DESIGN.md "Contracts").
+so pixel i covers [i, i + 1) (docs/architecture.md "Contracts").
 
 Shapes: blocks are cubes of ``res`` voxels per edge, origin = their minimum corner;
 voxel (b, x, y, z) has centre origin_b + (x + ½, y + ½, z + ½)·voxel, flattened in that

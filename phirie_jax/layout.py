@@ -1,4 +1,4 @@
-"""Every name in an output folder, once (DESIGN.md "Contracts": paths in the manifest are
+"""Every name in an output folder, once (docs/architecture.md "Contracts": paths in the manifest are
 relative to the output folder).
 
     OUT/manifest.json              the record every stage writes

@@ -1,4 +1,4 @@
-"""``manifest.json``: the versioned record every stage writes (DESIGN.md "Contracts").
+"""``manifest.json``: the versioned record every stage writes (docs/architecture.md "Contracts").
 
 One small API for every stage: load the manifest of an output folder (or start one),
 replace a section (``instances``, ``objects``, ``background``, or a stage's own

@@ -1,4 +1,4 @@
-"""Imports follow the pipeline (DESIGN.md "Layout"): kernels ← shared records ← io ← observe ←
+"""Imports follow the pipeline (docs/architecture.md "Layout"): kernels ← shared records ← io ← observe ←
 construct (objects ← physics ← background) ← interact ← pipeline ← commands. A module may import
 its own layer or an earlier one, never a later one; lazy imports inside functions count too."""
 

@@ -1,5 +1,5 @@
 """``phirie convert`` end to end on the tiny synthetic preset: every stage runs, the output folder
-is the one DESIGN.md describes, and the Interactive Environment loads and renders it."""
+is the one docs/architecture.md describes, and the Interactive Environment loads and renders it."""
 
 from __future__ import annotations
 

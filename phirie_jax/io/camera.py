@@ -1,6 +1,6 @@
 """The one internal camera record.
 
-Convention (DESIGN.md "Contracts"): OpenCV axes (x right, y down, z forward),
+Convention (docs/architecture.md "Contracts"): OpenCV axes (x right, y down, z forward),
 ``world_to_camera`` 4×4, pinhole ``K``, pixel centres at (i + 0.5, j + 0.5) in K's
 image coordinates (the COLMAP / gsplat convention). Lens distortion, when the
 source model has it, is kept in ``distortion`` (OpenCV order k1, k2, p1, p2[, k3, ...])
@@ -76,7 +76,7 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 
 
 def sort_by_name(cameras: list[Camera]) -> list[Camera]:
-    """Camera index k = k-th image in name order (DESIGN.md "Contracts")."""
+    """Camera index k = k-th image in name order (docs/architecture.md "Contracts")."""
     return sorted(cameras, key=lambda c: c.name)
 
 

@@ -1,6 +1,6 @@
 """Scene folders: detect the layout and load one ``SceneInput``.
 
-Layouts (DESIGN.md "Contracts"; detected, never asked for):
+Layouts (docs/architecture.md "Contracts"; detected, never asked for):
 - COLMAP: ``sparse/0/`` or ``sparse/`` (``.bin`` or ``.txt``), images in ``images/``.
 - nerfstudio: ``transforms.json`` (OpenGL camera-to-world), images where its frames say.
 - ScanNet++ DSLR: ``dslr/nerfstudio/transforms_undistorted.json`` with

@@ -2,7 +2,7 @@
 
 Sources:
 - ``files``: ``masks/<image stem>.png`` (16-bit, 0 = none, k = instance k). The value is
-  the instance's identity in every view (DESIGN.md "Contracts"). ScanNet++ annotations
+  the instance's identity in every view (docs/architecture.md "Contracts"). ScanNet++ annotations
   (``scans/segments_anno.json`` + ``scans/segments.json`` over the scan mesh's vertices)
   become masks of the same kind by projecting the labelled mesh (``vertex_label_image``).
 - external segmenters (SAM-family outputs brought by the user), a folder with per image

@@ -2,7 +2,7 @@
 
 Outputs (paths relative to ``out_dir``):
 
-- ``manifest.json``: ``instances`` (DESIGN.md "Contracts": ``id``, ``category``, ``views``
+- ``manifest.json``: ``instances`` (docs/architecture.md "Contracts": ``id``, ``category``, ``views``
   = supporting camera indices, ``num_points``, ``bounds``, ``source``; plus ``points``,
   ``confidence``, ``view_names``, ``support`` (``observe.support``: height in the gravity
   frame, source, hits, normal), ``points_dropped`` (by reason)), ``observe`` (surface used and how it was made, mask

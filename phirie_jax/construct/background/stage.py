@@ -17,7 +17,7 @@ Reads the capture G0 (the scene folder) and what the earlier stages wrote in ``o
 
 Writes ``background.ply`` (INRIA format) = (G0 \\ ∪R_i) ∪ G_fill, ``background/targets/`` (the
 targets, editor format), and the manifest ``background`` section: ``path``, ``removed``,
-``filled`` (DESIGN.md "Contracts") and per object the counts of R_obs, R_asset, R_mask and their
+``filled`` (docs/architecture.md "Contracts") and per object the counts of R_obs, R_asset, R_mask and their
 union, the plane, the fill, the primary view and a status ("filled", "untargeted" — disks
 coloured from neighbours only, no view sees them —, "nothing_exposed", "unsupported", "failed",
 "skipped"), plus ``unsupported_regions``, ``failed_completions``, the frames, the refinement

@@ -1,7 +1,7 @@
 """Per-candidate checks and the lexicographic ranking (the paper's selection).
 
 A check table is ``{name: {"value", "threshold", "passed", ...}}`` — the manifest's
-``checks`` (DESIGN.md "Contracts"). ``passed`` is True, False, or None for a check that
+``checks`` (docs/architecture.md "Contracts"). ``passed`` is True, False, or None for a check that
 has not run: the settling check needs the physics stage's drop test, which fills in
 ``value``/``passed`` later and re-ranks with ``rank`` (nothing here fakes it).
 

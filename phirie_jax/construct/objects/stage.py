@@ -21,7 +21,7 @@ this run has no assets for are removed (only when they hold nothing but the stag
 
 Works in the scene's frame (``phirie_jax.frame``: metres, up as the manifest's ``frame``
 records it, +z for every scene converted with one). Writes the manifest ``objects`` section
-(DESIGN.md "Contracts"), a ``construct`` record (supports, config) and timings ``objects`` /
+(docs/architecture.md "Contracts"), a ``construct`` record (supports, config) and timings ``objects`` /
 ``objects.<step>``. A failure
 of one object is recorded (status "failed" with the reason) and the rest go on.
 """
@@ -233,7 +233,7 @@ def _seen(inst: InstanceInput, placed, surface, pose: np.ndarray, tolerance: flo
 
 
 def _entry_for(instance_id: int, reason: str | None = None) -> dict:
-    """An ``objects`` entry with every contract field (DESIGN.md), failed until filled in.
+    """An ``objects`` entry with every contract field (docs/architecture.md "Contracts"), failed until filled in.
     ``collision``, ``mass``, ``friction`` and ``drop_test`` are the physics stage's."""
     return {"id": int(instance_id), "status": "failed", "reason": reason, "candidate": None, "pose": None,
             "mesh": None, "visual": None, "collision": [], "mass": None, "friction": None, "checks": {},

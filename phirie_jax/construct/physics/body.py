@@ -9,7 +9,7 @@ the same record, so an object's inertial and contact parameters exist once:
 * contact (``contact``): sliding friction from the priors with MuJoCo's default torsional and
   rolling friction, ``solref`` and ``solimp`` from the priors.
 
-Body frame = the canonical mesh frame with the pose's scale applied (DESIGN.md "Contracts").
+Body frame = the canonical mesh frame with the pose's scale applied (docs/architecture.md "Contracts").
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Collision part files: ``objects/<id>/collision/part_NN.obj`` (``layout.collision_part``), written
 and read here only.
 
-Each file is one convex part in the canonical mesh frame (DESIGN.md "Contracts"), unscaled, in
+Each file is one convex part in the canonical mesh frame (docs/architecture.md "Contracts"), unscaled, in
 metres: its hull vertices and outward-wound triangles, 9 significant digits. The physics stage
 reads the parts back after writing them, so the mass properties, ``scene.xml``, ``object.urdf``
 and the drop test all use the values as written.

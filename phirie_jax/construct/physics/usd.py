@@ -5,7 +5,7 @@ inertia exist once (``body.ObjectBody``, its ``MassProperties``) and the support
 ``supports.BackgroundGeom`` rows:
 
 * stage: ``metersPerUnit`` 1, ``kilogramsPerUnit`` 1, ``upAxis`` Z (the world frame every output is
-  written in, DESIGN.md "Contracts"); ``/World/PhysicsScene`` with gravity −up × ``mjcf.GRAVITY``;
+  written in, docs/architecture.md "Contracts"); ``/World/PhysicsScene`` with gravity −up × ``mjcf.GRAVITY``;
 * ``/World/object_<id>``: an Xform at the pose's rotation and translation (the body frame of
   ``scene.xml``: canonical mesh frame, the pose's scale applied) with ``PhysicsRigidBodyAPI`` and
   ``PhysicsMassAPI`` (mass, centre of mass, principal moments and the rotation to their axes:

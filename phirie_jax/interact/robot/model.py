@@ -1,7 +1,7 @@
 """The robot's MJCF as a ``mujoco.MjSpec``, and what the rest needs to know of it.
 
 ``robot_spec(model)`` reads ``"panda"`` — the Franka Panda (Apache-2.0, V. Kumar) shipped as include
-files in the ``gymnasium-robotics`` wheel, compiled through a wrapper as DESIGN.md "Robot model"
+files in the ``gymnasium-robotics`` wheel, compiled through a wrapper as docs/architecture.md "Robot model"
 describes — or any MJCF file. ``describe(spec)`` finds its root body, end-effector site, arm
 joints with their position servos, gripper joints and actuators (slide joints under the hand,
 open at the top of their control range) and a home configuration; ``RobotDescription`` records
