@@ -31,8 +31,8 @@ the camera's image stem:
 
 A stem matching a primary view replaces our target there; other stems add frames. The
 folder ``background/targets/`` that a run writes (``TargetsConfig.write``) has this layout (plus
-``<stem>_hole.png``, the inpainted pixels, and ``targets.json``), so an editor can start
-from it and hand it back.
+``<stem>_hole.png``, the inpainted pixels; the manifest's ``background.targets`` lists the
+frames), so an editor can start from it and hand it back.
 """
 
 from __future__ import annotations
