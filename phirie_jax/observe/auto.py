@@ -1,17 +1,21 @@
 """Automatic instance discovery with no learned weights (``--masks auto``).
 
 1. Sample the observed surface: first hits of pixel rays of every camera (on a stride),
-   thinned to one per ``sample_voxel``, with normals turned towards the camera.
+   thinned to one per ``sample_voxel``, with normals turned towards the camera; which camera
+   saw which sample is kept (``Samples``).
 2. Supports under the scene's up (+z of the frame resolved before observation, never
-   re-derived here): peaks of the height histogram of upward-facing samples, each refitted by least squares on its
-   inliers and kept when it covers ``min_support_area``. Each support gets a 2D footprint
-   (occupancy of its inliers, holes closed — the table under an object is never seen).
-3. What stands on a support: samples above it (by more than the plane threshold, at most
-   ``max_object_height``) inside its footprint, assigned to the nearest support below.
-   Euclidean clustering (radius graph, ``cluster_eps``) per support; a cluster is an
-   object when it is big enough, small enough and its lowest point is near the support.
-   The object's sides within the plane threshold of the support (not upward-facing,
-   next to the cluster) are given back to it.
+   re-derived here), fitted on the samples' positions, seeded by the frame's support plane
+   when the frame stage found one (``observe/support_fit.py``): planes by RANSAC, each with
+   its relief (a soft support is not flat) and its 2D footprint (holes closed — the table
+   under an object is never seen).
+3. What stands on a support: samples above its surface (by more than the plane threshold, at
+   most ``max_object_height``) inside its footprint, assigned to the nearest support below.
+   Euclidean clustering (radius graph, ``cluster_eps``) per support; a cluster is an object
+   when it is big enough, small enough, tall enough, its lowest point is near the support, and
+   enough of the views that look at it see it (``min_views``, ``min_view_fraction``: the
+   optimiser's floor bumps and floaters show in a few views only). The object's sides within
+   the plane threshold of the support (not upward-facing, next to the cluster) are given back
+   to it.
 4. Per-view masks: each pixel's first hit on the surface takes the label of the nearest
    sample (within two sample voxels): projection of each cluster with occlusion.
 """
@@ -21,40 +25,30 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from phirie_jax.observe.config import AutoMaskConfig
 from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, camera_problem
 from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.observe.support_fit import Support, find_supports
 from phirie_jax.observe.surface import pack_keys
 from phirie_jax.types import Camera
 
+HIDDEN_MARGIN = 0.5  # a view looks at a cluster unless the surface stops its centre's ray this fraction of
+                     # the cluster's radius short of the cluster
+
 
 @dataclasses.dataclass(frozen=True)
-class Support:
-    normal: np.ndarray     # (3,) unit, pointing up
-    offset: float          # plane: normal · x = offset
-    inliers: int           # samples on it
-    area: float            # m², samples × sample_voxel²
-    origin: np.ndarray     # (2,) footprint grid origin in plane coordinates
-    footprint: np.ndarray  # (U, V) bool occupancy, holes filled
-    basis: np.ndarray      # (2, 3) in-plane axes
+class Samples:
+    """The observed surface, sampled: one sample per voxel, and which camera's rays hit which."""
 
-    def height(self, points):
-        return points @ self.normal - self.offset
-
-    def covers(self, points, cell: float) -> np.ndarray:
-        uv = np.floor((points @ self.basis.T - self.origin) / cell).astype(np.int64)
-        ok = (uv >= 0).all(1) & (uv[:, 0] < self.footprint.shape[0]) & (uv[:, 1] < self.footprint.shape[1])
-        out = np.zeros(len(points), bool)
-        out[ok] = self.footprint[uv[ok, 0], uv[ok, 1]]
-        return out
-
-    def as_dict(self) -> dict:
-        return {"normal": self.normal.round(6).tolist(), "offset": round(float(self.offset), 6),
-                "inliers": self.inliers, "area_m2": round(self.area, 4)}
+    points: np.ndarray      # (N, 3) surface samples
+    normals: np.ndarray     # (N, 3) unit, facing a camera that saw them
+    hit_sample: np.ndarray  # (H,) int64 sample of each ray hit
+    hit_camera: np.ndarray  # (H,) int64 camera (index into the cameras sampled) of each ray hit
+    cameras: int            # cameras sampled
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,102 +56,80 @@ class AutoSegmentation:
     points: np.ndarray      # (N, 3) observed surface samples
     labels: np.ndarray      # (N,) int64 object id per sample, 0 = support or nothing
     supports: list[Support]
-    objects: list[dict]     # accepted clusters: id, support, points, extent, base gap
+    objects: list[dict]     # accepted clusters: id, support, points, extent, base gap, views
     rejected: list[dict]    # clusters left out, with the reason
     up: np.ndarray          # (3,)
+    planes: list[dict] = dataclasses.field(default_factory=list)  # every support plane tried, and why not
 
 
-def observed_samples(raycaster: Raycaster, cameras: list[Camera], stride: int, voxel: float):
-    """Surface samples (N, 3) the cameras see, one per voxel, and normals (N, 3) facing a camera."""
-    points, normals = [], []
-    for cam in cameras:
+def observed_samples(raycaster: Raycaster, cameras: list[Camera], stride: int, voxel: float) -> Samples:
+    """The surface the cameras see, one sample per voxel (see ``Samples``)."""
+    points, normals, owner = [], [], []
+    for k, cam in enumerate(cameras):
         hits, _, _ = raycaster.cast_camera(cam, stride)
         points.append(hits.points[hits.hit])
         normals.append(hits.normal[hits.hit])
-    points, normals = np.concatenate(points), np.concatenate(normals)
-    _, first = np.unique(pack_keys(np.floor(points / voxel)), return_index=True)
-    first = np.sort(first)
-    return points[first], normals[first]
+        owner.append(np.full(int(hits.hit.sum()), k, np.int64))
+    points, normals, owner = np.concatenate(points), np.concatenate(normals), np.concatenate(owner)
+    _, first, inverse = np.unique(pack_keys(np.floor(points / voxel)), return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")            # samples in the order their voxel was first seen
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return Samples(points[first[order]], normals[first[order]], rank[inverse.ravel()], owner, len(cameras))
 
 
-def _plane_fit(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
-    centre = points.mean(0)
-    normal = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
-    normal = normal if normal @ up >= 0 else -normal
-    return normal, float(normal @ centre)
+def view_counts(samples: Samples, labels: np.ndarray, count: int, min_pixels: int) -> np.ndarray:
+    """(count + 1,) per label 0..count: how many cameras have ≥ ``min_pixels`` ray hits on its samples."""
+    hit_label = labels[samples.hit_sample]
+    on = hit_label > 0
+    pairs = np.bincount(hit_label[on] * samples.cameras + samples.hit_camera[on],
+                        minlength=(count + 1) * samples.cameras).reshape(count + 1, samples.cameras)
+    return (pairs >= min_pixels).sum(1)
 
 
-def find_supports(points: np.ndarray, normals: np.ndarray, up: np.ndarray, config: AutoMaskConfig,
-                  sample_voxel: float) -> list[Support]:
-    """Upward-facing support planes (largest first) under the scene's ``up`` (3,)."""
-    cos_tilt = np.cos(np.deg2rad(config.up_max_tilt_deg))
-    facing = normals @ up > cos_tilt
-    if facing.sum() < 3:
-        return []
-    cand = points[facing]
-    heights = cand @ up
-    thr = config.plane_threshold
-    edges = np.arange(heights.min() - thr, heights.max() + 2 * thr, thr)
-    counts, _ = np.histogram(heights, edges)
-    supports, used = [], np.zeros(len(cand), bool)
-    min_count = config.min_support_area / sample_voxel**2
-    while True:
-        peak = int(np.argmax(counts))
-        if counts[peak] < min_count / 3:  # a peak bin holds ≥ 1/3 of a support's inliers
-            break
-        centre = 0.5 * (edges[peak] + edges[peak + 1])
-        near = ~used & (np.abs(heights - centre) < 1.5 * thr)
-        counts[max(0, peak - 2): peak + 3] = 0
-        if near.sum() < 3:
-            continue
-        normal, offset = _plane_fit(cand[near], up)
-        inl = ~used & (np.abs(cand @ normal - offset) < thr)
-        if inl.sum() >= 3:
-            normal, offset = _plane_fit(cand[inl], up)
-            inl = ~used & (np.abs(cand @ normal - offset) < thr)
-        used |= near | inl
-        if inl.sum() < min_count or normal @ up < cos_tilt:
-            continue
-        supports.append(_with_footprint(cand[inl], normal, offset, config.footprint_cell,
-                                        float(inl.sum() * sample_voxel**2)))
-    return supports
+def looking_views(raycaster: Raycaster | None, cameras: list[Camera], centre: np.ndarray, radius: float) -> int:
+    """Cameras that look at a cluster: its centre (3,) in the image, in front, and (with a
+    ``raycaster``) the surface not stopping the centre's ray well before the cluster."""
+    looking = []
+    for cam in cameras:
+        uv, depth = cam.project(centre[None])
+        if depth[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height:
+            looking.append(cam)
+    if raycaster is None or not looking:
+        return len(looking)
+    origins = np.array([c.center for c in looking], np.float64)
+    dirs = centre[None] - origins
+    hits = raycaster.cast(origins, dirs)  # depth in units of the whole segment to the centre
+    dist = np.linalg.norm(dirs, axis=1)
+    hidden = hits.depth * dist < dist - radius * (1 + HIDDEN_MARGIN)
+    return int((~hidden).sum())
 
 
-def _with_footprint(inliers, normal, offset, cell, area) -> Support:
-    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = np.cross(normal, helper)
-    e1 /= np.linalg.norm(e1)
-    basis = np.stack([e1, np.cross(normal, e1)])
-    uv = inliers @ basis.T
-    origin = uv.min(0) - cell
-    idx = np.floor((uv - origin) / cell).astype(np.int64)
-    grid = np.zeros(idx.max(0) + 2, bool)
-    grid[idx[:, 0], idx[:, 1]] = True
-    grid = ndimage.binary_fill_holes(ndimage.binary_closing(grid, iterations=2, border_value=0))
-    return Support(normal, offset, len(inliers), area, origin, grid, basis)
-
-
-def segment(points: np.ndarray, normals: np.ndarray, up: np.ndarray, config: AutoMaskConfig) -> AutoSegmentation:
-    """Supports under the scene's ``up`` (3,) and the object clusters standing on them; see the
-    module docstring."""
+def segment(samples: Samples, up: np.ndarray, config: AutoMaskConfig, cameras: list[Camera] | None = None,
+            raycaster: Raycaster | None = None, seeds: tuple = ()) -> AutoSegmentation:
+    """Supports under the scene's ``up`` (3,) (``seeds``: (normal, offset) planes the frame found)
+    and the object clusters standing on them; see the module docstring. ``cameras``: the cameras
+    ``samples`` were taken with (their views count clusters' viewers; None: no view filter);
+    ``raycaster``: the surface, to tell which cameras have a cluster hidden."""
+    points, normals = samples.points, samples.normals
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    supports = find_supports(points, normals, up, config, config.sample_voxel)
+    supports, planes = find_supports(points, up, config, config.sample_voxel, seeds)
     labels = np.zeros(len(points), np.int64)
     if not supports:
-        facing = int((normals @ up > np.cos(np.deg2rad(config.up_max_tilt_deg))).sum())
-        reason = (f"no support plane: no upward-facing surface of at least {config.min_support_area} m² "
-                  f"within {config.up_max_tilt_deg:.0f}° of up ({facing} of {len(points)} surface samples face up)")
-        return AutoSegmentation(points, labels, [], [], [{"reason": reason}], up)
+        reason = (f"no support plane: no plane within {config.up_max_tilt_deg:.0f}° of up holds "
+                  f"{config.min_support_area} m² of the {len(points)} surface samples within "
+                  f"{config.plane_threshold} m" + (f" (seeded by the frame's plane: {planes[0]['reason']})"
+                                                   if planes and planes[0]["source"] == "frame" else ""))
+        return AutoSegmentation(points, labels, [], [], [{"reason": reason}], up, planes)
     heights = np.stack([s.height(points) for s in supports], 1)  # (N, S)
     on_support = (np.abs(heights) < config.plane_threshold).any(1)
     above = (heights >= config.plane_threshold) & (heights <= config.max_object_height)
     for s, support in enumerate(supports):
-        above[:, s] &= support.covers(points, config.footprint_cell)
+        above[:, s] &= support.covers(points)
     owner = np.where(above, heights, np.inf).argmin(1)
     candidate = ~on_support & above.any(1)
 
-    objects, rejected = [], []
-    next_id = 1
+    clusters, rejected = [], []
     for s in range(len(supports)):
         idx = np.flatnonzero(candidate & (owner == s))
         if len(idx) == 0:
@@ -191,11 +163,42 @@ def segment(points: np.ndarray, normals: np.ndarray, up: np.ndarray, config: Aut
                 rejected.append({**info, "reason": f"lowest point {base_gap:.3f} m above the support "
                                  f"(> {config.max_base_gap} m): does not stand on it"})
                 continue
-            labels[members] = next_id
-            objects.append({"id": next_id, **info})
-            next_id += 1
+            clusters.append((members, info))
+    objects = _seen_enough(samples, clusters, labels, config, cameras, raycaster, rejected)
     _reclaim_base(points, normals, labels, on_support, up, config)
-    return AutoSegmentation(points, labels, supports, objects, rejected, up)
+    return AutoSegmentation(points, labels, supports, objects, rejected, up, planes)
+
+
+def _seen_enough(samples: Samples, clusters: list, labels: np.ndarray, config: AutoMaskConfig,
+                 cameras: list[Camera] | None, raycaster: Raycaster | None, rejected: list[dict]) -> list[dict]:
+    """Label the clusters that enough views see (``min_views``, ``min_view_fraction``) 1, 2, …
+    in ``labels``; record the others in ``rejected``. Returns the objects' records."""
+    trial = np.zeros_like(labels)
+    for k, (members, _) in enumerate(clusters, start=1):
+        trial[members] = k
+    seen = view_counts(samples, trial, len(clusters), config.min_view_pixels)
+    objects, next_id = [], 1
+    for k, (members, info) in enumerate(clusters, start=1):
+        views = int(seen[k])
+        info = {**info, "views": views}
+        if cameras is not None:
+            pts = samples.points[members]
+            centre = pts.mean(0)
+            radius = float(np.percentile(np.linalg.norm(pts - centre, axis=1), 90))
+            looking = looking_views(raycaster, cameras, centre, radius)
+            info["looking_views"] = looking
+            fraction = views / max(looking, 1)
+            if views < config.min_views:
+                rejected.append({**info, "reason": f"seen by {views} views (< min_views {config.min_views})"})
+                continue
+            if fraction < config.min_view_fraction:
+                rejected.append({**info, "reason": f"seen by {views} of the {looking} views that look at it "
+                                 f"({fraction:.2f} < min_view_fraction {config.min_view_fraction})"})
+                continue
+        labels[members] = next_id
+        objects.append({"id": next_id, **info})
+        next_id += 1
+    return objects
 
 
 def _reclaim_base(points, normals, labels, on_support, up, config: AutoMaskConfig) -> None:

@@ -52,6 +52,7 @@ from phirie_jax.observe.masks import (
 )
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.observe.support import Support, find_support
+from phirie_jax.observe.support_fit import frame_support_plane
 from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
 from phirie_jax.types import Camera, SceneInput
 
@@ -150,9 +151,10 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
 
 
 def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
-               config: ObserveConfig, record: dict, up: np.ndarray | None = None):
+               config: ObserveConfig, record: dict, up: np.ndarray | None = None, frame_record: dict | None = None):
     """The per-view masks of the chosen source (an iterator) and the source's name; ``up`` (3,)
-    is the scene's (automatic masks look for supports under it; default +z)."""
+    is the scene's (automatic masks look for supports under it; default +z) and ``frame_record``
+    the manifest's ``frame`` (its support plane seeds automatic discovery's)."""
     if masks == "files":
         if scene.masks is not None:
             return file_masks(scene.cameras, scene.masks), "files"
@@ -171,12 +173,16 @@ def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
     if masks == "auto":
         t0 = time.perf_counter()
         cams = [c for c in scene.cameras if camera_problem(c) is None]
-        points, normals = auto_mod.observed_samples(raycaster, cams, config.auto.sample_stride,
-                                                    config.auto.sample_voxel)
-        seg = auto_mod.segment(points, normals, np.array([0.0, 0.0, 1.0]) if up is None else up, config.auto)
-        record["auto"] = {"samples": len(points), "up": seg.up.round(6).tolist(),
-                          "supports": [s.as_dict() for s in seg.supports], "objects": seg.objects,
-                          "rejected_clusters": seg.rejected, "segment_s": round(time.perf_counter() - t0, 4)}
+        samples = auto_mod.observed_samples(raycaster, cams, config.auto.sample_stride, config.auto.sample_voxel)
+        seed = frame_support_plane(frame_record)
+        seg = auto_mod.segment(samples, np.array([0.0, 0.0, 1.0]) if up is None else up, config.auto, cams,
+                               raycaster, seeds=() if seed is None else (seed,))
+        record["auto"] = {"samples": len(samples.points), "up": seg.up.round(6).tolist(),
+                          "frame_support": None if seed is None else {"normal": seed[0].round(6).tolist(),
+                                                                      "offset": round(seed[1], 6)},
+                          "supports": [s.as_dict() for s in seg.supports], "support_planes": seg.planes,
+                          "objects": seg.objects, "rejected_clusters": seg.rejected,
+                          "segment_s": round(time.perf_counter() - t0, 4)}
         return auto_mod.auto_masks(raycaster, scene.cameras, seg, config.auto.sample_voxel), "auto"
     return external_masks(Path(masks), scene.cameras), "external"
 
@@ -377,7 +383,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
             raycaster = Raycaster(surface.vertices, surface.faces, config.working_width)
         record: dict = {"surface": surface_record}
         with manifest.timed("observe.masks"):
-            views, source = mask_views(scene, masks, raycaster, config, record, manifest.up())
+            views, source = mask_views(scene, masks, raycaster, config, record, manifest.up(), manifest.get("frame"))
         lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
         instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest, raycaster)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),

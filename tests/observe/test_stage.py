@@ -100,8 +100,9 @@ def test_supports_and_clusters_on_the_scan(tabletop):
     mesh = trimesh.load(root / "surface.ply", process=False)
     caster = Raycaster(mesh.vertices, mesh.faces)
     config = AutoMaskConfig()
-    points, normals = observed_samples(caster, cams, 1, config.sample_voxel)
-    seg = segment(points, normals, np.array([0.0, 0.0, 1.0]), config)
+    samples = observed_samples(caster, cams, 1, config.sample_voxel)
+    seg = segment(samples, np.array([0.0, 0.0, 1.0]), config, cams, caster)
+    points = samples.points
     assert len(seg.objects) == len(scene.objects)
     truth = [obj.world_mesh().sample(2000, seed=0) for obj in scene.objects]
     clusters = [points[seg.labels == o["id"]] for o in seg.objects]
