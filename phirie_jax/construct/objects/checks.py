@@ -20,6 +20,9 @@ import numpy as np
 from phirie_jax.construct.objects.config import ObjectsConfig
 
 CHECKS = ("registration", "scale", "support", "collision", "settling")
+# Checks an automatically discovered instance (no mask, box or prompt backs it) must pass to be kept:
+# a cluster no candidate registers to is a bump, a floater or a fold, not an object.
+DISCOVERED_MUST_PASS = ("registration",)
 SETTLING_NOT_RUN = "no drop test yet: the physics stage runs it and fills this check in"
 
 
@@ -84,3 +87,16 @@ def first_by_priority(entries: list[dict]) -> dict | None:
     pass, else the first valid one."""
     valid = sorted((e for e in entries if e.get("checks")), key=lambda e: (e.get("priority", 0), e["name"]))
     return next((e for e in valid if not failed(e["checks"])), valid[0] if valid else None)
+
+
+def discovered_rejection(source: str | None, bad: list[str]) -> str | None:
+    """Why an instance found by automatic discovery (``source`` "auto") is not kept although its
+    best candidate was chosen: it failed one of ``DISCOVERED_MUST_PASS`` (``bad``: the chosen
+    candidate's failed checks). None keeps it (other sources: masks, prompts, are user evidence)."""
+    if source != "auto":
+        return None
+    missed = [name for name in DISCOVERED_MUST_PASS if name in bad]
+    if not missed:
+        return None
+    return (f"automatically discovered and failed the {', '.join(missed)} check: no candidate fits what was "
+            "observed (an optimiser's bump or floater, or a fold of the support)")

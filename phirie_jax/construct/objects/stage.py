@@ -39,7 +39,15 @@ import numpy as np
 from phirie_jax import layout
 from phirie_jax.construct.objects import assets
 from phirie_jax.construct.objects.candidates import Candidate, candidate_pool
-from phirie_jax.construct.objects.checks import candidate_checks, failed, first_by_priority, hull_volume, rank, rank_key
+from phirie_jax.construct.objects.checks import (
+    candidate_checks,
+    discovered_rejection,
+    failed,
+    first_by_priority,
+    hull_volume,
+    rank,
+    rank_key,
+)
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.generators import InstanceInput
 from phirie_jax.construct.objects.register import (
@@ -277,6 +285,9 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
         return {**out, "reason": f"no candidate could be registered ({reasons})"}
     bad = failed(chosen["checks"])
     out.update(candidate=chosen["name"], checks=chosen["checks"], unresolved_checks=bad)
+    discovered = discovered_rejection(record.get("source"), bad)
+    if discovered:
+        return {**out, "status": "rejected", "reason": discovered}
     if config.strict and bad:
         return {**out, "status": "rejected", "reason": f"strict: failed checks {bad} on the best candidate"}
     candidate = next(c for c in pool if c.name == chosen["name"])

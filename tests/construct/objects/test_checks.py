@@ -87,3 +87,13 @@ def test_hull_volume_of_a_cube_and_of_a_flat_set():
     cube = list(itertools.product([0, 2], repeat=3))
     assert hull_volume(cube) == pytest.approx(8.0)
     assert hull_volume([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]) == 0.0
+
+
+def test_automatically_discovered_instance_failing_registration_is_rejected():
+    from phirie_jax.construct.objects.checks import discovered_rejection
+
+    assert "registration" in discovered_rejection("auto", ["registration", "scale"])
+    assert discovered_rejection("auto", ["scale"]) is None          # kept (its failed checks recorded)
+    assert discovered_rejection("auto", []) is None
+    for source in ("files", "external", "prompt", None):            # user evidence is kept
+        assert discovered_rejection(source, ["registration"]) is None
