@@ -87,7 +87,10 @@ def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = Non
 def _print_converted(facts: dict) -> None:
     """``phirie info`` of a converted folder: a summary table, then one row per object."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
+
+    from phirie_jax.info import STATUS_COLOURS, status_words
 
     console = Console()
     table = Table(title=f"phirie info: {facts['root']} ({facts['state']})", show_header=False)
@@ -105,8 +108,13 @@ def _print_converted(facts: dict) -> None:
     for column in ("id", "status", "candidate", "drop test", "mass (kg)", "friction", "parts", "reason"):
         objects.add_column(column)
     for row in facts["objects"]:
-        objects.add_row(*("—" if row[k] is None else str(row[k]) for k in
-                          ("id", "status", "candidate", "drop_test", "mass", "friction", "parts", "reason")))
+        cells = ["—" if row[k] is None else str(row[k]) for k in
+                 ("id", "status", "candidate", "drop_test", "mass", "friction", "parts", "reason")]
+        words = status_words({**row, "unresolved_checks": row["failed_checks"]})
+        cells[1] = f"[{STATUS_COLOURS.get(row['status'], 'default')}]{escape(words)}[/]"
+        if row.get("mass") is not None:
+            cells[4] = f"{row['mass']:.3g}" + (f" ({escape(row['mass_source'])})" if row.get("mass_source") else "")
+        objects.add_row(*cells)
     console.print(objects)
 
 
@@ -265,7 +273,7 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            observe_width: int | None = None, config: ConvertConfig = ConvertConfig(),
+            observe_width: int | None = None, mass: tuple[str, ...] = (), config: ConvertConfig = ConvertConfig(),
             allow_outside_paths: bool = False) -> None:
     """Scene → interactive scene: frame (metres, +z up) → observe → objects → physics →
     background, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
@@ -281,11 +289,16 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         frame: the capture's up and scale, when known (else estimated and recorded).
         observe_width: observation's working width in pixels, whatever the photos' size
             (same as --config.observe.working-width; 0 = the photos' size).
+        mass: ID=KG, an object's mass (repeatable: --mass 3=0.35 --mass 5=0.12); others get their
+            category's (a mask's or a prompt's label) or the paper's 0.3 kg.
         config: every stage's parameters (defaults: the paper's numbers).
         allow_outside_paths: accept cameras (transforms.json frames, COLMAP image names) that name
             images outside the scene folder; refused by default, before anything reads them.
     """
     config = dataclasses.replace(config, observe=_with_observe_width(config.observe, observe_width))
+    if mass:
+        config = dataclasses.replace(config, physics=dataclasses.replace(
+            config.physics, object_masses=config.physics.object_masses + _object_masses(mass)))
     manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None, allow_outside_paths)
     _print_frame(manifest)
     _print_instances(manifest)
@@ -295,6 +308,23 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     _print_timings(manifest)
     if (manifest.get("report") or {}).get("path"):
         print(f"report: {out / manifest['report']['path']}")
+
+
+def _object_masses(given: tuple[str, ...]) -> tuple[tuple[int, float], ...]:
+    """``--mass ID=KG`` values as (id, kg) pairs; ``OptionError`` for a malformed one."""
+    import math
+
+    pairs = []
+    for text in given:
+        ident, sep, kg = text.partition("=")
+        try:
+            pair = (int(ident), float(kg))
+        except ValueError:
+            pair = None
+        if not sep or pair is None or pair[0] < 0 or not (math.isfinite(pair[1]) and pair[1] > 0):
+            raise OptionError("--mass", f"{text!r} (expected ID=KG with a positive mass, e.g. 3=0.35)")
+        pairs.append(pair)
+    return tuple(pairs)
 
 
 def _with_observe_width(config: ObserveConfig, observe_width: int | None) -> ObserveConfig:
@@ -380,7 +410,10 @@ def _print_objects(manifest: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from rich.markup import escape
+
     from phirie_jax.construct.objects.checks import failed as failed_checks
+    from phirie_jax.info import STATUS_COLOURS, status_words
 
     table = Table(title="objects")
     for column in ("id", "status", "candidate", "failed checks", "drop test", "reason"):
@@ -392,7 +425,8 @@ def _print_objects(manifest: dict) -> None:
         verdict = "—" if not drop else ("stable" if drop.get("stable") else "unstable") + (
             f" ({100 * drift:.1f} cm)" if drift is not None else f" ({drop.get('error') or 'not measured'})")
         candidate = obj.get("candidate")
-        table.add_row(str(obj["id"]), obj.get("status", "?"),
+        colour = STATUS_COLOURS.get(obj.get("status"), "default")
+        table.add_row(str(obj["id"]), f"[{colour}]{escape(status_words(obj))}[/]",
                       str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—"),
                       ", ".join(failed) or "—", verdict,
                       "" if obj.get("status") == "accepted" else str(obj.get("reason") or ""))

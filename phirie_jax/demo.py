@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.manifest import is_kept
 from phirie_jax.progress import task
 from phirie_jax.synthetic.scene import write_png
 
@@ -59,7 +60,7 @@ def placement_errors(manifest: dict, scene_dir: Path) -> dict[int, float]:
     truth = {o["id"]: np.asarray(o["pose"]) for o in json.loads((scene_dir / "gt" / "objects.json").read_text())}
     errors = {}
     for obj in manifest.get("objects", []):
-        if obj.get("status") == "accepted" and obj["id"] in truth:
+        if is_kept(obj) and obj["id"] in truth:
             errors[obj["id"]] = float(np.linalg.norm(np.asarray(obj["pose"])[:3, 3] - truth[obj["id"]][:3, 3]))
     return errors
 

@@ -13,6 +13,7 @@ from phirie_jax import layout
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.gaussian_checks import degenerate_counts
 from phirie_jax.io.ply import ply_element_counts, read_gaussian_ply
+from phirie_jax.manifest import ACCEPTED, UNVERIFIED
 from phirie_jax.types import GaussianSplatData, SceneInput
 
 
@@ -100,6 +101,18 @@ def scene_facts(scene: SceneInput) -> dict:
     return facts
 
 
+# How each object status is shown (terminal, report, viewer): unverified in yellow.
+STATUS_COLOURS = {"accepted": "green", "unverified": "yellow", "rejected": "red", "failed": "red"}
+
+
+def status_words(entry: dict) -> str:
+    """An object's status with what it failed: ``unverified (failed registration)``."""
+    status = str(entry.get("status") or "?")
+    if status == UNVERIFIED and entry.get("unresolved_checks"):
+        return f"{status} (failed {', '.join(entry['unresolved_checks'])})"
+    return status
+
+
 def candidate_name(entry: dict) -> str:
     """The chosen candidate's name (the manifest holds a name, or a record with one)."""
     candidate = entry.get("candidate")
@@ -129,6 +142,11 @@ def _reasons(entries: list[dict]) -> str:
     return "; ".join(f"{reason} (×{n})" if n > 1 else reason for reason, n in counts.most_common(4))
 
 
+def _unverified(entry: dict) -> str:
+    """``5: failed registration, settling`` for an unverified object."""
+    return f"{entry['id']}: failed {', '.join(entry.get('unresolved_checks') or []) or 'a check'}"
+
+
 def outcome_lines(manifest: dict) -> list[str]:
     """What a conversion made, and why when it made nothing (the CLI prints these lines)."""
     lines = []
@@ -149,12 +167,15 @@ def outcome_lines(manifest: dict) -> list[str]:
         lines.append(f"scene.usda not written: {usd['reason']}")
     objects = manifest.get("objects")
     if objects:
-        accepted = [o for o in objects if o.get("status") == "accepted"]
-        if accepted:
-            lines.append(f"{len(accepted)} of {len(objects)} objects accepted")
+        accepted = [o for o in objects if o.get("status") == ACCEPTED]
+        unverified = [o for o in objects if o.get("status") == UNVERIFIED]
+        if accepted or unverified:
+            lines.append(f"{len(accepted)} of {len(objects)} objects accepted" + (
+                f", {len(unverified)} kept unverified ({'; '.join(_unverified(o) for o in unverified)})"
+                if unverified else ""))
         else:
-            lines.append("no object accepted: " + "; ".join(f"{o['id']}: {o.get('reason') or o.get('status')}"
-                                                          for o in objects))
+            lines.append("no object kept: " + "; ".join(f"{o['id']}: {o.get('reason') or o.get('status')}"
+                                                        for o in objects))
     return lines
 
 
@@ -199,10 +220,12 @@ def converted_facts(out_dir: Path) -> dict:
     state = conversion_state(out_dir, manifest)
     frame = data.get("frame") or {}
     background = data.get("background") or {}
-    objects = [{"id": o["id"], "status": o.get("status"), "candidate": candidate_name(o),
-                "drop_test": drop_verdict(o), "mass": o.get("mass"), "friction": o.get("friction"),
+    objects = [{"id": o["id"], "status": o.get("status"), "failed_checks": o.get("unresolved_checks") or [],
+                "candidate": candidate_name(o), "drop_test": drop_verdict(o), "mass": o.get("mass"),
+                "mass_source": ((o.get("physics") or {}).get("priors") or {}).get("mass_source"),
+                "friction": o.get("friction"),
                 "parts": len(o.get("collision") or []) or None,
-                "reason": None if o.get("status") == "accepted" else o.get("reason")}
+                "reason": None if o.get("status") == ACCEPTED else o.get("reason")}
                for o in data.get("objects") or []]
     files = {name: (out_dir / name).stat().st_size if (out_dir / name).is_file() else None
              for name in CONVERTED_FILES}

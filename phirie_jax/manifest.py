@@ -36,6 +36,17 @@ SCHEMA = "phirie/1"
 # ``failed`` (``failed_stage`` says why) or ``outdated`` (an earlier stage ran again after it).
 STAGE_NAMES = ("frame", "observe", "objects", "physics", "background")
 PENDING, RUNNING, COMPLETE, FAILED, OUTDATED = "pending", "running", "complete", "failed", "outdated"
+# An object's status (``objects[].status``): every check passed; kept although a check failed (the
+# reason names the checks); not kept (the reason says why); its stage failed for it (recorded).
+ACCEPTED, UNVERIFIED, REJECTED, FAILED_OBJECT = "accepted", "unverified", "rejected", "failed"
+KEPT = (ACCEPTED, UNVERIFIED)   # objects that are bodies of the scene
+
+
+def is_kept(entry: dict) -> bool:
+    """Whether an ``objects`` entry is a body of the scene (accepted or unverified)."""
+    return entry.get("status") in KEPT
+
+
 # The section each stage writes last (how a manifest without ``stages`` tells what ran).
 LAST_WRITTEN = {"frame": "frame", "observe": "instances", "objects": "objects", "physics": "physics",
                 "background": "background"}
@@ -111,8 +122,9 @@ class Manifest:
         """Every object entry (``objects``; the object-construction stage writes them)."""
         return self.require("objects", "the object-construction stage")
 
-    def accepted_objects(self) -> list[dict]:
-        return [o for o in self.objects() if o.get("status") == "accepted"]
+    def kept_objects(self) -> list[dict]:
+        """The objects that are bodies of the scene (``is_kept``)."""
+        return [o for o in self.objects() if is_kept(o)]
 
     def categories(self) -> dict[int, str | None]:
         """Instance id → category (None when the observation did not name one)."""

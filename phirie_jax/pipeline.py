@@ -45,7 +45,7 @@ from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.io.output_folder import check_inputs_outside, check_output_folder, locked
 from phirie_jax.io.scene import find_gaussians, load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
-from phirie_jax.manifest import COMPLETE, FAILED, OUTDATED, PENDING, RUNNING, STAGE_NAMES, Manifest
+from phirie_jax.manifest import COMPLETE, FAILED, OUTDATED, PENDING, RUNNING, STAGE_NAMES, Manifest, is_kept
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.masks import check_mask_source, file_mask_ids
 from phirie_jax.progress import task
@@ -220,7 +220,7 @@ def _physics_beside_background(run: Run, progress, created: Path | None) -> Run:
 
 
 def _accepted_ids(out_dir: Path) -> set:
-    return {e["id"] for e in Manifest.load_or_create(out_dir).get("objects") or [] if e.get("status") == "accepted"}
+    return {e["id"] for e in Manifest.load_or_create(out_dir).get("objects") or [] if is_kept(e)}
 
 
 # The stage table: run in this order, each reading what the earlier ones wrote (``run_convert``

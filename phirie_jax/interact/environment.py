@@ -38,6 +38,7 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.interact.robot.appearance import robot_gaussians
 from phirie_jax.io.transforms_json import read_transforms_json
+from phirie_jax.manifest import is_kept
 from phirie_jax.types import Camera, GaussianSplatData
 
 PUSHER = "pusher"
@@ -180,7 +181,7 @@ class Environment:
 
             config = robot if isinstance(robot, RobotConfig) else RobotConfig(model=str(robot))
             accepted = [int(o["id"]) for o in manifest.get("objects", [])
-                        if o.get("status") == "accepted" and o.get("visual") and o.get("collision")]
+                        if is_kept(o) and o.get("visual") and o.get("collision")]
             model, handle = merge_robot(spec, config, out_dir / layout.SCENE_MJCF,
                                         {i: body_name(i) for i in accepted})
         else:
@@ -190,7 +191,7 @@ class Environment:
         background = read_gaussian_ply(out_dir / layout.BACKGROUND)
         objects = []
         for obj in manifest.get("objects", []):
-            if obj.get("status") != "accepted" or not obj.get("visual") or not obj.get("collision"):
+            if not is_kept(obj) or not obj.get("visual") or not obj.get("collision"):
                 continue
             splats = read_gaussian_ply(out_dir / obj["visual"])
             if splats.sh_degree != background.sh_degree:

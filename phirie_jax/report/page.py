@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from phirie_jax import layout
-from phirie_jax.info import candidate_name, chosen_scores, drop_verdict, outcome_lines
+from phirie_jax.info import candidate_name, chosen_scores, drop_verdict, outcome_lines, status_words
 from phirie_jax.io.atomic import write_text
 from phirie_jax.manifest import Manifest
 from phirie_jax.report.config import ReportConfig
@@ -33,6 +33,8 @@ text-align: left; vertical-align: top; } th { background: #f6f6f6; }
 img { display: block; image-rendering: auto; } .pass { color: #1a7f37; } .fail { color: #c62828; }
 .muted { color: #777; } .num { text-align: right; font-variant-numeric: tabular-nums; }
 .strip img { display: inline-block; margin-right: 4px; }
+.status-accepted { color: #1a7f37; } .status-unverified { color: #9a6700; background: #fff8c5; }
+.status-rejected, .status-failed { color: #c62828; }
 """
 
 
@@ -112,7 +114,8 @@ def _objects(manifest: dict, images: ReportImages) -> str:
             f"{len(entry.get('collision') or [])} convex parts")
         thumb = images.thumbnails.get(entry["id"])
         rows.append(f"<tr><td>{_img(thumb, 'thumbnail') if thumb is not None else ''}</td><td>{_e(entry['id'])}</td>"
-                    f"<td>{_e(entry.get('status'))}</td><td>{_e(candidate_name(entry))}</td><td>{scores}</td>"
+                    f"<td class=\"status-{_e(entry.get('status'))}\">{_e(status_words(entry))}</td>"
+                    f"<td>{_e(candidate_name(entry))}</td><td>{scores}</td>"
                     f"<td>{_checks(entry.get('checks'))}</td><td>{_e(drop_verdict(entry))}</td><td>{physics}</td>"
                     f"<td>{_e(entry.get('reason') if entry.get('status') != 'accepted' else '')}</td></tr>")
     return "<table>" + head + "".join(rows) + "</table>"

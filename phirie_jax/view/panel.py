@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from phirie_jax.info import candidate_name, chosen_scores, drop_verdict
+from phirie_jax.info import STATUS_COLOURS, candidate_name, chosen_scores, drop_verdict, status_words
+from phirie_jax.manifest import ACCEPTED
 
 
 def _number(value, digits: int = 3) -> str:
@@ -17,8 +18,9 @@ def _number(value, digits: int = 3) -> str:
 
 def object_markdown(entry: dict) -> str:
     """The panel of one object: status, candidate and scores, checks, drop test, physics."""
-    lines = [f"**{entry.get('status', '?')}** · candidate `{candidate_name(entry)}`"]
-    if entry.get("status") != "accepted" and entry.get("reason"):
+    marker = {"green": "🟢", "yellow": "🟡"}.get(STATUS_COLOURS.get(entry.get("status"), "red"), "🔴")
+    lines = [f"{marker} **{status_words(entry)}** · candidate `{candidate_name(entry)}`"]
+    if entry.get("status") != ACCEPTED and entry.get("reason"):
         lines.append(f"reason: {entry['reason']}")
     scores = {k: v for k, v in chosen_scores(entry).items() if isinstance(v, (int, float))}
     if scores:
@@ -37,6 +39,9 @@ def object_markdown(entry: dict) -> str:
     if entry.get("mass") is not None:
         lines.append(f"mass {_number(entry['mass'])} kg · friction {_number(entry.get('friction'))}"
                      + (f" · {len(entry.get('collision') or [])} convex parts" if entry.get("collision") else ""))
+    source = (physics.get("priors") or {}).get("mass_source")
+    if source:
+        lines.append(f"mass from: {source}")
     if mass.get("com") is not None:
         lines.append("centre of mass (body frame, m): " + ", ".join(_number(v) for v in mass["com"]))
     return "\n".join(lines)

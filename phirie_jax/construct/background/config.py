@@ -68,7 +68,7 @@ class RemovalConfig:
     enclosed_lift: float = 0.01
     reach_sigmas: float = 2.0
     reach_depth: float = 0.005
-    statuses: tuple[str, ...] = ("accepted",)
+    statuses: tuple[str, ...] = ("accepted", "unverified")
 
     def __post_init__(self):
         check_ranges(self, {

@@ -66,7 +66,7 @@ from phirie_jax.frame.gravity import GravityFrame, gravity_frame
 from phirie_jax.frame.resolve import scene_in_world
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.io.scene import load_scene
-from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.manifest import ACCEPTED, REJECTED, UNVERIFIED, Manifest, to_dict
 from phirie_jax.observe.support import Support, find_support
 from phirie_jax.types import GaussianSplatData, SceneInput
 
@@ -289,12 +289,12 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
     if discovered:
         return {**out, "status": "rejected", "reason": discovered}
     if config.strict and bad:
-        return {**out, "status": "rejected", "reason": f"strict: failed checks {bad} on the best candidate"}
+        return {**out, "status": REJECTED, "reason": f"strict: failed checks {bad} on the best candidate"}
     candidate = next(c for c in pool if c.name == chosen["name"])
     with manifest.timed("objects.assets"):
         files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir, surface)
-    return {**out, **files, "status": "accepted",
-            "reason": None if not bad else f"kept with failed checks {bad} (use --strict to reject)"}
+    return {**out, **files, "status": UNVERIFIED if bad else ACCEPTED,
+            "reason": None if not bad else f"kept with failed checks: {', '.join(bad)} (use --strict to reject)"}
 
 
 def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, manifest: Manifest) -> list[dict]:

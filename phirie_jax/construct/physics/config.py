@@ -104,8 +104,9 @@ class PhysicsConfig:
     Measurements behind the defaults: ``experiments/results/physics_notes.md``.
 
     Attributes:
-        mass: kg per object unless ``category_masses`` names its category (paper: 0.3 kg).
-        category_masses: ((category, kg), ...) overrides of ``mass`` by instance category.
+        mass: kg of an object nothing better is known of (paper: 0.3 kg); see ``priors``.
+        category_masses: ((category, kg), ...): the mass of every object of a category.
+        object_masses: ((object id, kg), ...): one object's mass (``--mass ID=KG``), first of all.
         friction: sliding friction coefficient (paper: 0.5); torsional/rolling stay MuJoCo's
             defaults (physics_notes.md "Friction and restitution").
         restitution: coefficient of restitution (paper: 0), as the solref damping ratio (0 is
@@ -137,6 +138,7 @@ class PhysicsConfig:
 
     mass: float = 0.3
     category_masses: tuple[tuple[str, float], ...] = ()
+    object_masses: tuple[tuple[int, float], ...] = ()
     friction: float = 0.5
     restitution: float = 0.0
     contact_timeconst: float = 0.02
@@ -182,3 +184,7 @@ class PhysicsConfig:
             if mass not in POSITIVE:
                 raise ConfigValueError(type(self).__name__, "category_masses", f"{category} {shown(mass)}",
                                        f"a mass > 0 for {category!r}")
+        for ident, mass in self.object_masses:
+            if mass not in POSITIVE:
+                raise ConfigValueError(type(self).__name__, "object_masses", f"{ident} {shown(mass)}",
+                                       f"a mass > 0 for object {ident}")

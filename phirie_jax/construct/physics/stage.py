@@ -33,7 +33,7 @@ from phirie_jax.construct.physics.collision import MeshError, collision_from_mes
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.construct.physics.mjcf import scene_mjcf, settle_scene
 from phirie_jax.construct.physics.parts import read_part, write_parts
-from phirie_jax.construct.physics.priors import Priors, priors
+from phirie_jax.construct.physics.priors import Priors, Shape, priors
 from phirie_jax.construct.physics.supports import PlacedBody, fit_background
 from phirie_jax.construct.physics.urdf import write_urdf
 from phirie_jax.construct.physics.usd import write_scene_usd
@@ -41,7 +41,7 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
 from phirie_jax.io.mesh import load_trimesh, read_mesh
-from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.manifest import ACCEPTED, UNVERIFIED, Manifest, is_kept, to_dict
 from phirie_jax.progress import task
 
 SETTLE_SECONDS = 2.0
@@ -105,7 +105,7 @@ def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manif
 
 def build_accepted(objects: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig) -> None:
     """Build every accepted object in place: its fields on success, else status "failed" with the reason."""
-    accepted = [e for e in objects if e.get("status") == "accepted"]
+    accepted = [e for e in objects if is_kept(e)]
     apply_outcomes(objects, [e["id"] for e in accepted], build_objects(accepted, categories, out_dir, config))
 
 
@@ -127,10 +127,13 @@ def build_object(entry: dict, category: str | None, out_dir: Path, config: Physi
         raise MeshError("accepted object without a pose or mesh in the manifest")
     pose = np.asarray(entry["pose"])
     split_sim3(pose)   # a pose that is no similarity fails before the mesh work
-    collision = collision_from_mesh(*_load_mesh(layout.resolve(out_dir, entry["mesh"])), config)
+    vertices, faces = _load_mesh(layout.resolve(out_dir, entry["mesh"]))
+    collision = collision_from_mesh(vertices, faces, config)
     paths = write_parts(out_dir, entry["id"], collision.parts)
+    shape = Shape.of_mesh(vertices, faces, split_sim3(pose)[0])
     # the parts as written, so URDF, MJCF and the drop test agree to the digit
-    body = object_body(entry["id"], [read_part(out_dir / p) for p in paths], pose, priors(category, config), paths)
+    body = object_body(entry["id"], [read_part(out_dir / p) for p in paths], pose,
+                       priors(category, config, shape, entry["id"]), paths)
     # MuJoCo must accept the body on its own before it goes into the scene
     dt.build_model(dt.DropBody(body, np.eye(3)), dt.part_bucket(len(body.parts), config.drop_test),
                    config.drop_test)
@@ -263,7 +266,7 @@ def start_collision(out_dir: str | Path, config: PhysicsConfig | None = None) ->
     out_dir = Path(out_dir)
     manifest = Manifest.load_or_create(out_dir)
     objects = manifest.require("objects", "the object-construction stage")
-    accepted = [e for e in objects if e.get("status") == "accepted"]
+    accepted = [e for e in objects if is_kept(e)]
     return CollisionJob(accepted, manifest.categories(), out_dir, config or PhysicsConfig())
 
 
@@ -310,7 +313,7 @@ def _terminate(pool) -> None:
 def export_scene(objects: list[dict], up: np.ndarray, surface, out_dir: Path, config: PhysicsConfig) -> dict:
     """Fit the supports, write ``scene.xml`` and settle it (which also proves that it loads);
     returns the manifest's ``physics`` section. ``surface``: the scene surface (trimesh) or None."""
-    exported = [e for e in objects if e.get("status") == "accepted" and e.get("collision")]
+    exported = [e for e in objects if is_kept(e) and e.get("collision")]
     bodies = [exported_body(e, out_dir) for e in exported]
     placed = [_placed(body, e) for body, e in zip(bodies, exported)]
     background = fit_background(placed, up, surface, config.support_thickness, config.background)
@@ -348,7 +351,7 @@ def exported_bodies(objects: list[dict], out_dir: Path, up: np.ndarray,
     its ``drop_test`` error here and is left out."""
     entries, bodies = [], []
     for entry in objects:
-        if entry.get("status") != "accepted" or not entry.get("collision") or not entry.get("physics"):
+        if not is_kept(entry) or not entry.get("collision") or not entry.get("physics"):
             continue
         try:
             bodies.append(dt.drop_body(exported_body(entry, out_dir), up))
@@ -370,6 +373,10 @@ def record_verdicts(entries: list[dict], results: list[dt.DropResult], config: P
         if "unresolved_checks" in entry:
             bad = [n for n in entry["unresolved_checks"] if n != "settling"]
             entry["unresolved_checks"] = bad + (["settling"] if result.stable is False else [])
+            if is_kept(entry):
+                entry["status"] = UNVERIFIED if entry["unresolved_checks"] else ACCEPTED
+                entry["reason"] = (f"kept with failed checks: {', '.join(entry['unresolved_checks'])} (use --strict "
+                                   "to reject)" if entry["unresolved_checks"] else None)
 
 
 # --- reading the manifest and the files ------------------------------------------------

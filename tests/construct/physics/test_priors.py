@@ -11,7 +11,14 @@ from scipy.spatial.transform import Rotation
 
 from phirie_jax.construct.physics.collision import ConvexPart, convex_part
 from phirie_jax.construct.physics.config import PhysicsConfig
-from phirie_jax.construct.physics.priors import damping_ratio, mass_properties, priors
+from phirie_jax.construct.physics.priors import (
+    CATEGORY_MATERIALS,
+    Shape,
+    damping_ratio,
+    mass_properties,
+    prior_mass,
+    priors,
+)
 
 RTOL = 1e-9
 
@@ -90,3 +97,37 @@ def test_priors_default_to_the_paper_and_take_the_category_table():
     assert priors("mug", config).mass == 0.35 and "mug" in priors("mug", config).mass_source
     assert priors("bottle", config).mass == 0.3
     assert priors(None, PhysicsConfig(mass=1.2)).mass == 1.2
+
+
+def test_a_solids_mass_is_its_density_times_its_hull_volume():
+    can = trimesh.creation.cylinder(radius=0.0335, height=0.101, sections=256)
+    shape = Shape.of_mesh(can.vertices, can.faces)
+    assert shape.hull_volume == pytest.approx(math.pi * 0.0335 ** 2 * 0.101, rel=1e-3)
+    mass, source = prior_mass("can", PhysicsConfig(), shape)
+    # YCB's 349 g soup can has the same size: the table gives it back
+    assert mass == pytest.approx(0.349, rel=0.03) and source.startswith("category can: 977 kg/m³ × ")
+    double = Shape.of_mesh(can.vertices, can.faces, scale=2.0)
+    assert prior_mass("can", PhysicsConfig(), double)[0] == pytest.approx(8 * mass)   # mass grows with volume
+
+
+def test_a_shells_mass_follows_its_wall_area_not_its_volume():
+    mug = trimesh.creation.annulus(r_min=0.036, r_max=0.040, height=0.095, sections=256)
+    shape = Shape.of_mesh(mug.vertices, mug.faces)
+    material = CATEGORY_MATERIALS["mug"]
+    mass, source = prior_mass("mug", PhysicsConfig(), shape)
+    assert mass == pytest.approx(material.density * material.thickness * shape.area / 2)
+    assert 0.15 < mass < 0.4 and "5 mm" in source          # a stoneware mug's few hundred grams
+    bowl_16cm = trimesh.creation.annulus(r_min=0.075, r_max=0.080, height=0.06, sections=256)
+    assert prior_mass("bowl", PhysicsConfig(), Shape.of_mesh(bowl_16cm.vertices, bowl_16cm.faces))[0] > mass
+
+
+def test_the_mass_comes_from_the_most_specific_source():
+    box = trimesh.creation.box((0.06, 0.16, 0.21))
+    shape = Shape.of_mesh(box.vertices, box.faces)
+    config = PhysicsConfig(category_masses=(("box", 0.5),), object_masses=((7, 0.9),))
+    assert prior_mass("box", config, shape, object_id=7) == (0.9, "given (--mass 7=0.9)")
+    assert prior_mass("box", config, shape, object_id=8) == (0.5, "category table (box)")
+    assert prior_mass("box", PhysicsConfig(), shape)[0] == pytest.approx(178 * 0.06 * 0.16 * 0.21)
+    assert prior_mass("Cracker Box", PhysicsConfig(), shape)[0] == pytest.approx(178 * 0.06 * 0.16 * 0.21)
+    assert prior_mass("teapot", PhysicsConfig(), shape) == (0.3, "config (paper default 0.3 kg)")
+    assert prior_mass("box", PhysicsConfig(), None) == (0.3, "config (paper default 0.3 kg)")   # no shape known

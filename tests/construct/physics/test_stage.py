@@ -40,7 +40,10 @@ def test_objects_get_the_contract_fields(physics):
     good = {o["id"]: o for o in manifest["objects"] if o["status"] == "accepted"}
     assert sorted(good) == sorted(t.id for t in truth)
     for obj in good.values():
-        assert obj["mass"] == 0.3 and obj["friction"] == 0.5
+        prior = obj["physics"]["priors"]
+        assert obj["friction"] == 0.5 and obj["mass"] == prior["mass"]
+        category = next(t.shape.category for t in truth if t.id == obj["id"])
+        assert prior["mass_source"].startswith(f"category {category}: "), prior["mass_source"]
         assert 1 <= len(obj["collision"]) <= 16 and all((out / p).is_file() for p in obj["collision"])
         assert set(obj["drop_test"]) >= {"stable", "drift_m", "final_height_m"}
         assert obj["drop_test"]["stable"] is True                    # the ground truth rests on the table
@@ -84,7 +87,7 @@ def test_mjcf_loads_with_the_masses_inertias_and_placements_of_the_manifest(phys
     for obj in (o for o in manifest["objects"] if o["status"] == "accepted"):
         b = model.body(f"object_{obj['id']}")
         props = obj["physics"]["mass_properties"]
-        assert b.mass[0] == pytest.approx(0.3)
+        assert b.mass[0] == pytest.approx(obj["mass"])
         np.testing.assert_allclose(model.body_ipos[b.id], props["com"], atol=1e-7)
         np.testing.assert_allclose(np.sort(model.body_inertia[b.id]), np.linalg.eigvalsh(props["inertia"]),
                                    rtol=1e-6)
@@ -105,7 +108,7 @@ def test_urdf_parses_with_the_same_inertial_as_the_mjcf(physics):
         urdf = ET.parse(out / obj["physics"]["urdf"]).getroot()
         link = urdf.find("link")
         inertial = link.find("inertial")
-        assert float(inertial.find("mass").get("value")) == pytest.approx(0.3)
+        assert float(inertial.find("mass").get("value")) == pytest.approx(obj["mass"])
         com = [float(x) for x in inertial.find("origin").get("xyz").split()]
         body = next(b for b in scene.iter("body") if b.get("name") == f"object_{obj['id']}")
         mj = body.find("inertial")
@@ -130,7 +133,7 @@ def test_urdf_loads_in_pybullet_with_its_inertial(physics):
             body = pybullet.loadURDF(str(out / obj["physics"]["urdf"]), flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
                                      physicsClientId=client)
             info = pybullet.getDynamicsInfo(body, -1, physicsClientId=client)
-            assert info[0] == pytest.approx(0.3)
+            assert info[0] == pytest.approx(obj["mass"])
             np.testing.assert_allclose(sorted(info[2]), np.linalg.eigvalsh(obj["physics"]["mass_properties"]["inertia"]),
                                        rtol=1e-5)
             np.testing.assert_allclose(info[3], obj["physics"]["mass_properties"]["com"], atol=1e-6)
