@@ -115,9 +115,10 @@ def _world_plane(support: dict) -> tuple[np.ndarray, float] | None:
     normal = np.asarray(support.get("normal", (0.0, 0.0, 1.0)), np.float64).reshape(3)
     if not np.isfinite(normal).all() or np.linalg.norm(normal) == 0:
         return None
-    normal = normal / np.linalg.norm(normal)
+    length = float(np.linalg.norm(normal))
+    normal = normal / length
     if "offset" in support:
-        offset = float(support["offset"])
+        offset = float(support["offset"]) / length
     elif "point" in support:
         offset = float(normal @ np.asarray(support["point"], np.float64).reshape(3))
     elif "height" in support:

@@ -1,0 +1,118 @@
+"""Automatic discovery on a rough, optimiser-shaped tabletop: floor bumps 1–2 cm tall, floaters,
+a support that is not flat, and supports found from positions alone (per-sample normals
+scrambled, as on a real capture's splat-derived surface). Geometry of the synthetic ``tiny``
+preset as a scan mesh (no splat rendering), so it runs in seconds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from phirie_jax.observe.auto import Samples, observed_samples, segment
+from phirie_jax.observe.config import AutoMaskConfig
+from phirie_jax.observe.evaluate import iou_matrix, match
+from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.observe.support_fit import frame_support_plane
+from tests.observe.helpers import ring
+
+TABLE_Z = 0.75
+
+
+def _bump(centre, radius, height):
+    import trimesh
+
+    dome = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    dome.vertices *= [radius, radius, height]
+    dome.vertices[:, 2] = np.maximum(dome.vertices[:, 2], 0.0)
+    dome.apply_translation([centre[0], centre[1], TABLE_Z])
+    return dome
+
+
+@pytest.fixture(scope="module")
+def rough_tabletop():
+    import trimesh
+
+    from phirie_jax.synthetic import build_scene
+
+    scene = build_scene("tiny", 0)
+    rng = np.random.default_rng(0)
+    table = scene.furniture.table.copy()
+    top = np.abs(table.vertices[:, 2] - TABLE_Z) < 1e-6
+    table = table.subdivide_to_size(0.02)
+    top = np.abs(table.vertices[:, 2] - TABLE_Z) < 1e-6
+    table.vertices[top, 2] += rng.normal(0, 0.002, top.sum())   # a rough, not flat, tabletop
+    centres = [o.pose[:2, 3] for o in scene.objects]
+    bumps, xy = [], []
+    while len(bumps) < 4:
+        c = rng.uniform(-0.45, 0.45, 2) * [1.0, 0.6]
+        if all(np.linalg.norm(c - p) > 0.16 for p in centres + xy):
+            bumps.append(_bump(c, rng.uniform(0.025, 0.04), rng.uniform(0.01, 0.02)))
+            xy.append(c)
+    floaters = [trimesh.creation.icosphere(2, 0.02).apply_translation([*rng.uniform(-0.3, 0.3, 2), z])
+                for z in (0.9, 1.0, 1.1)]
+    parts = [scene.furniture.floor, table, *bumps, *floaters, *[o.world_mesh() for o in scene.objects]]
+    mesh = trimesh.util.concatenate(parts)
+    cams = ring(12, 0.9, 1.45, target=(0.0, 0.0, 0.78), width=160, height_px=120, focal=144.0)
+    return scene, Raycaster(mesh.vertices, mesh.faces), cams
+
+
+def _scrambled(samples: Samples, seed=0) -> Samples:
+    """The samples with random normals: no support can come from normals."""
+    n = np.random.default_rng(seed).normal(size=samples.normals.shape)
+    return Samples(samples.points, n / np.linalg.norm(n, axis=1, keepdims=True), samples.hit_sample,
+                   samples.hit_camera, samples.cameras)
+
+
+def test_bumps_and_floaters_are_not_objects_and_supports_need_no_normals(rough_tabletop):
+    scene, caster, cams = rough_tabletop
+    config = AutoMaskConfig()
+    samples = _scrambled(observed_samples(caster, cams, config.sample_stride, config.sample_voxel))
+    seg = segment(samples, np.array([0.0, 0.0, 1.0]), config, cams, caster)
+    assert any(abs(s.offset - TABLE_Z) < 0.005 for s in seg.supports)
+    truth = [o.world_mesh().sample(2000, seed=0) for o in scene.objects]
+    clusters = [samples.points[seg.labels == o["id"]] for o in seg.objects]
+    assert len(seg.objects) == len(scene.objects)                                  # no phantom
+    assert len(match(iou_matrix(truth, clusters, voxel=0.02), 0.3)) == len(scene.objects)  # every object
+    reasons = " ".join(r["reason"] for r in seg.rejected)
+    assert "a bump of the support" in reasons
+
+
+def test_clusters_seen_by_few_of_the_views_that_look_at_them_are_rejected(rough_tabletop):
+    _, caster, cams = rough_tabletop
+    samples = observed_samples(caster, cams, 2, 0.005)
+    strict = segment(samples, np.array([0.0, 0.0, 1.0]), AutoMaskConfig(min_views=len(cams) + 1), cams, caster)
+    assert strict.objects == [] and all("min_views" in r["reason"] for r in strict.rejected if "views" in r)
+    # each object's views are counted and no object is seen by fewer than half the views facing it
+    seg = segment(samples, np.array([0.0, 0.0, 1.0]), AutoMaskConfig(), cams, caster)
+    assert all(o["views"] >= 0.5 * o["looking_views"] and o["views"] >= 3 for o in seg.objects)
+
+
+def test_the_frame_support_plane_seeds_discovery(rough_tabletop):
+    scene, caster, cams = rough_tabletop
+    samples = observed_samples(caster, cams, 2, 0.005)
+    seed = frame_support_plane({"support": {"normal": [0.0, 0.0, 2.0], "offset": 2 * TABLE_Z}})
+    np.testing.assert_allclose(seed[0], [0, 0, 1]) and np.testing.assert_allclose(seed[1], TABLE_Z)
+    seg = segment(samples, np.array([0.0, 0.0, 1.0]), AutoMaskConfig(), cams, caster, seeds=(seed,))
+    assert seg.supports[0].source == "frame" and abs(seg.supports[0].offset - TABLE_Z) < 0.005
+    assert len(seg.objects) == len(scene.objects)
+    # a seed no surface holds is recorded and discovery goes on with its own fit
+    seg = segment(samples, np.array([0.0, 0.0, 1.0]), AutoMaskConfig(), cams, caster,
+                  seeds=((np.array([0.0, 0.0, 1.0]), 0.3),))
+    assert seg.planes[0]["source"] == "frame" and seg.planes[0]["reason"]
+    assert any(abs(s.offset - TABLE_Z) < 0.005 for s in seg.supports)
+
+
+def test_frame_support_plane_from_the_frame_record():
+    assert frame_support_plane(None) is None and frame_support_plane({"support": "x"}) is None
+    normal, offset = frame_support_plane({"support": {"normal": [0, 0, -1], "point": [0, 0, 0.4]}})
+    np.testing.assert_allclose(normal, [0, 0, 1]) and np.testing.assert_allclose(offset, 0.4)
+    # the evidence plane the up came from, moved into the world by capture_to_world (x_w = 2 R x_c)
+    rot = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])   # capture +y → world +z
+    c2w = np.eye(4)
+    c2w[:3, :3] = 2 * rot
+    record = {"capture_to_world": c2w.tolist(), "up_source": "support plane (1 parallel plane(s), ...)",
+              "evidence": {"planes": [{"normal": [0, 1, 0], "offset": 0.3, "inliers": 50},
+                                      {"normal": [1, 0, 0], "offset": 1.0, "inliers": 90}]}}
+    normal, offset = frame_support_plane(record)
+    np.testing.assert_allclose(normal, [0, 0, 1], atol=1e-12) and np.testing.assert_allclose(offset, 0.6)
+    assert frame_support_plane({**record, "up_source": "given (--up +y)"}) is None
