@@ -1,22 +1,26 @@
 """Automatic discovery, end to end: which movable bodies ``--masks auto`` makes on a capture
 without a scan, masks or candidates, against the synthetic truth.
 
-    python -m experiments.discovery_eval --seeds 2001 2002 2003 2004 [--fitted] \\
+    python -m experiments.discovery_eval --preset default --seeds 2001 2002 2003 \
+        --variants ideal artefacts fitted fitted+artefacts [--gsplat DIR ...] \
         --scene-root /tmp/phirie_scenes --work /tmp/discovery_eval --out experiments/results/discovery_eval.json
 
-Each synthetic ``default`` scene (``--scene-root/eval<seed>``, synthesized when missing; with
-``--fitted`` also ``eval<seed>_fitted``, its Gaussians fitted to its images — see
-``experiments/fit_scenes.py``) is linked without ``surface.ply``, ``masks/`` and
-``candidates/``, as a user's capture comes, and converted with ``--masks auto`` through the
-physics stage (observe → objects → physics; the surface is splat-derived). Its ``frame.json``
-(metric, +z up) is kept: the frame estimate is measured apart (``tests/frame/``).
+Scenes: the synthetic ``--preset`` of each seed (``--scene-root/<preset><seed>``, synthesized when
+missing); ``fitted``: its Gaussians fitted by the project's own fitter (``phirie synth --fitted``,
+``FIT_PRESETS``); ``artefacts``: what gsplat's densification leaves (``synthetic.artefacts``: four
+1–2 cm floor bumps and four floater clouds added to the capture); ``--gsplat DIR``: scene folders
+whose Gaussians gsplat fitted (``experiments/fit_gsplat.py``, each holds gt/). Each is linked
+without ``surface.ply``, ``masks/`` and ``candidates/``, as a user's capture comes, and converted
+with ``--masks auto`` through ``--stages`` (observe → objects by default; the surface is
+splat-derived). Its ``frame.json`` (metric, +z up) is kept: the frame estimate is measured apart.
 
-Scores (issue 14's definition): an accepted object matches a true object when the F1@20 mm of
-its placed mesh against the true world mesh is ≥ 0.9; objects and true objects are matched one
-to one, greedily by F1. An accepted object that matches none is a *phantom*. Recall = matched true
-objects / true objects; precision = matched accepted objects / accepted objects. Beside it, the
-same matching at F1@40 mm ≥ 0.5 (``located``: the body is where a true object is, whatever its
-shape quality), and per object its best F1@20 / F1@40, its candidate and the instance's views.
+Scores per scene (issue 14's definition), on the objects the run keeps (status ``accepted`` or
+``unverified``): a kept object matches a true object when the F1@20 mm of its placed mesh against
+the true world mesh is ≥ 0.9, one to one, greedily by F1. TP = matched, FP = kept objects matching
+none (phantoms; ``on_artefact``: those within 5 cm of an added bump or floater), FN = true objects
+unmatched; precision = TP / (TP + FP), recall = TP / (TP + FN). Beside it, the same matching at
+F1@40 mm ≥ 0.5 (``located``), and the observation alone: instances against the true objects'
+visible surfaces at 3D IoU ≥ 0.5 (``observe.evaluate``).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import time
 from pathlib import Path
 
@@ -32,6 +37,8 @@ import numpy as np
 F1_MATCH = 0.9       # issue 14: an accepted object matching no true object at F1@20 ≥ 0.9 is a phantom
 LOCATED_F1_40 = 0.5  # the friendlier column: F1@40 ≥ 0.5
 LEFT_OUT = ("surface.ply", "masks", "candidates")
+ON_ARTEFACT = 0.05   # m: a phantom this close (horizontally) to an added artefact is on it
+KEPT = ("accepted", "unverified")
 
 
 def user_capture(src: Path, dst: Path, leave_out: tuple[str, ...] = LEFT_OUT) -> Path:
@@ -54,7 +61,8 @@ def scores(f1_20: np.ndarray, f1_40: np.ndarray) -> dict:
 
     truths, accepted = f1_20.shape
     strict, located = match(f1_20, F1_MATCH), match(f1_40, LOCATED_F1_40)
-    return {"objects": truths, "accepted": accepted, "matched": len(strict),
+    return {"tp": len(strict), "fp": accepted - len(strict), "fn": truths - len(strict),
+            "objects": truths, "accepted": accepted, "matched": len(strict),
             "recall": round(len(strict) / max(truths, 1), 4),
             "precision": round(len(strict) / accepted, 4) if accepted else None,
             "phantoms": accepted - len(strict),
@@ -63,84 +71,141 @@ def scores(f1_20: np.ndarray, f1_40: np.ndarray) -> dict:
             "matches": [(int(g), int(p)) for g, p, _ in strict]}
 
 
-def evaluate_scene(scene_dir: Path, work: Path, metrics) -> dict:
+def _artefacts(scene_dir: Path) -> list[dict]:
+    path = scene_dir / "gt" / "artefacts.json"
+    return json.loads(path.read_text())["artefacts"] if path.exists() else []
+
+
+def evaluate_scene(scene_dir: Path, work: Path, metrics, stages: tuple[str, ...]) -> dict:
     import trimesh
 
+    from phirie_jax.observe.evaluate import evaluate
     from phirie_jax.pipeline import run_convert
 
     capture = user_capture(scene_dir, work / "capture")
     out = work / "out"
+    if out.exists():
+        shutil.rmtree(out)
     t0 = time.perf_counter()
     error = None
     try:
-        run_convert(capture, out, masks="auto", stages=("observe", "objects", "physics"))
+        run_convert(capture, out, masks="auto", stages=stages, allow_outside_paths=True)
     except Exception as err:  # noqa: BLE001 — a failed conversion is a row of the table, not the end of the run
         error = f"{type(err).__name__}: {err}"
     wall = time.perf_counter() - t0
     manifest = json.loads((out / "manifest.json").read_text())
     truth = json.loads((scene_dir / "gt" / "objects.json").read_text())
     instances = {i["id"]: i for i in manifest.get("instances", [])}
-    accepted = [o for o in manifest.get("objects", []) if o.get("status") == "accepted"]
-    f1_20 = np.zeros((len(truth), len(accepted)))
+    kept = [o for o in manifest.get("objects", []) if o.get("status") in KEPT]
+    f1_20 = np.zeros((len(truth), len(kept)))
     f1_40 = np.zeros_like(f1_20)
-    for p, obj in enumerate(accepted):
+    for p, obj in enumerate(kept):
         mesh = trimesh.load(out / obj["mesh"], force="mesh")
         for g, t in enumerate(truth):
             m = metrics(mesh, obj["pose"], scene_dir / t["mesh"])
             f1_20[g, p], f1_40[g, p] = m["f1_20"], m["f1_40"]
     result = scores(f1_20, f1_40)
+    artefacts = _artefacts(scene_dir)
     per_object = []
-    for p, obj in enumerate(accepted):
+    for p, obj in enumerate(kept):
         g = int(np.argmax(f1_20[:, p])) if len(truth) else None
         inst = instances.get(obj["id"], {})
         lo, hi = (np.asarray(b) for b in inst.get("bounds", [[0, 0, 0], [0, 0, 0]]))
-        per_object.append({"id": obj["id"], "candidate": obj.get("candidate"), "views": len(inst.get("views", [])),
+        centre = 0.5 * (lo + hi)
+        near = [a["kind"] for a in artefacts if np.linalg.norm(np.asarray(a["centre"][:2]) - centre[:2]) < ON_ARTEFACT]
+        per_object.append({"id": obj["id"], "status": obj["status"], "candidate": obj.get("candidate"),
+                           "views": len(inst.get("views", [])), "confidence": inst.get("confidence"),
                            "height_m": round(float(hi[2] - lo[2]), 4),
                            "best_truth": truth[g]["id"] if g is not None else None,
                            "best_f1_20": round(float(f1_20[g, p]), 4) if g is not None else None,
                            "best_f1_40": round(float(f1_40[:, p].max()), 4) if len(truth) else None,
-                           "phantom": all(q != p for _, q in result["matches"])})
-    return {**result, "instances": len(instances), "error": error, "wall_s": round(wall, 1),
-            "rejected_objects": [{"id": o["id"], "reason": o.get("reason")} for o in manifest.get("objects", [])
-                                 if o.get("status") != "accepted"],
+                           "phantom": all(q != p for _, q in result["matches"]), "near_artefact": near,
+                           "failed_checks": obj.get("unresolved_checks", [])})
+    phantoms = [o for o in per_object if o["phantom"]]
+    try:
+        observed = evaluate(scene_dir, out)
+        observation = {"instances": observed["instances"], "tp": observed["matched"],
+                       "fp": observed["instances"] - observed["matched"], "fn": observed["objects"] - observed["matched"],
+                       "precision": round(observed["precision"], 4), "recall": round(observed["recall"], 4)}
+    except (OSError, KeyError, ValueError) as err:
+        observation = {"error": f"{type(err).__name__}: {err}"}
+    auto = manifest.get("observe", {}).get("auto", {})
+    return {**result, "on_artefact": sum(bool(o["near_artefact"]) for o in phantoms), "artefacts": len(artefacts),
+            "instances": len(instances), "observation": observation, "error": error, "wall_s": round(wall, 1),
+            "supports": [{k: s[k] for k in ("offset", "area_m2", "source")} for s in auto.get("supports", [])],
+            "rejected_clusters": [{k: r.get(k) for k in ("points", "height_m", "views", "looking_views", "reason")}
+                                  for r in auto.get("rejected_clusters", []) if r.get("points", 0) >= 40],
+            "not_kept": [{"id": o["id"], "status": o.get("status"), "reason": o.get("reason")}
+                         for o in manifest.get("objects", []) if o.get("status") not in KEPT],
             "timings": {k: round(v, 2) for k, v in manifest.get("timings", {}).items() if "." not in k},
             "per_object": per_object}
 
 
 def summarize(rows: list[dict]) -> dict:
-    total = {k: sum(r[k] for r in rows) for k in ("objects", "accepted", "matched", "phantoms", "located")}
-    return {**total, "recall": round(total["matched"] / max(total["objects"], 1), 4),
-            "precision": round(total["matched"] / total["accepted"], 4) if total["accepted"] else None,
+    total = {k: sum(r[k] for r in rows) for k in ("tp", "fp", "fn", "objects", "accepted", "located", "on_artefact")}
+    obs = [r["observation"] for r in rows if "tp" in r["observation"]]
+    observed = {k: sum(o[k] for o in obs) for k in ("tp", "fp", "fn")}
+    return {**total, "recall": round(total["tp"] / max(total["tp"] + total["fn"], 1), 4),
+            "precision": round(total["tp"] / (total["tp"] + total["fp"]), 4) if total["tp"] + total["fp"] else None,
             "located_recall": round(total["located"] / max(total["objects"], 1), 4),
             "located_precision": round(total["located"] / total["accepted"], 4) if total["accepted"] else None,
+            "observation": {**observed, "recall": round(observed["tp"] / max(observed["tp"] + observed["fn"], 1), 4),
+                            "precision": (round(observed["tp"] / (observed["tp"] + observed["fp"]), 4)
+                                          if observed["tp"] + observed["fp"] else None)},
             "failed_conversions": sum(r["error"] is not None for r in rows),
             "wall_s_mean": round(float(np.mean([r["wall_s"] for r in rows])), 1)}
 
 
+def scene_folder(root: Path, preset: str, seed: int, variant: str) -> Path:
+    """The folder of one (preset, seed, variant): synthesized, fitted and given artefacts as named."""
+    from phirie_jax.synthetic.artefacts import add_artefacts
+    from phirie_jax.synthetic.fitted import ensure_synthesized
+
+    fitted = variant.startswith("fitted")
+    base = ensure_synthesized(root / f"{preset}{seed}{'_fitted' if fitted else ''}", preset, seed, fitted)
+    if not variant.endswith("artefacts"):
+        return base
+    path = root / f"{base.name}_artefacts"
+    if not (path / "gt" / "artefacts.json").exists():
+        if path.exists():
+            shutil.rmtree(path)
+        shutil.copytree(base, path)
+        add_artefacts(path, seed)
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[2001, 2002, 2003, 2004])
+    parser.add_argument("--preset", default="default")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[2001, 2002, 2003])
+    parser.add_argument("--variants", nargs="+", default=["ideal", "artefacts"],
+                        choices=["ideal", "artefacts", "fitted", "fitted+artefacts"])
+    parser.add_argument("--gsplat", type=Path, nargs="*", default=[], help="gsplat-fitted scene folders (gt/ kept)")
+    parser.add_argument("--stages", nargs="+", default=["observe", "objects"])
     parser.add_argument("--scene-root", type=Path, default=Path("/tmp/phirie_scenes"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/discovery_eval"))
     parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--fitted", action="store_true", help="also every scene with fitted Gaussians")
     args = parser.parse_args()
 
     from experiments.objects_eval import Metrics
     from experiments.report import emit
-    from phirie_jax.synthetic.fitted import ensure_synthesized
 
     metrics = Metrics()
-    variants = [("ideal", False)] + ([("fitted", True)] if args.fitted else [])
     result = {"what": __doc__.split("\n\n")[2].strip(), "f1_match": F1_MATCH, "located_f1_40": LOCATED_F1_40,
-              "seeds": args.seeds, "machine": {"platform": platform.platform(), "cpus": __import__("os").cpu_count()}}
-    for name, fitted in variants:
+              "preset": args.preset, "seeds": args.seeds, "stages": args.stages,
+              "machine": {"platform": platform.platform(), "cpus": __import__("os").cpu_count()}}
+    runs = [(variant, [(seed, lambda seed=seed, v=variant: scene_folder(args.scene_root, args.preset, seed, v))
+                       for seed in args.seeds]) for variant in args.variants]
+    if args.gsplat:
+        runs.append(("gsplat", [(path.name, lambda path=path: path) for path in args.gsplat]))
+    for name, scenes in runs:
         rows = []
-        for seed in args.seeds:
-            scene = ensure_synthesized(args.scene_root / (f"eval{seed}_fitted" if fitted else f"eval{seed}"),
-                                       "default", seed, fitted)
-            row = {"seed": seed, **evaluate_scene(scene, args.work / f"{name}{seed}", metrics)}
-            print(json.dumps({k: v for k, v in row.items() if k not in ("per_object", "matches")}), flush=True)
+        for seed, make in scenes:
+            scene = make()
+            row = {"seed": seed, "scene": str(scene),
+                   **evaluate_scene(scene, args.work / f"{name}_{seed}", metrics, tuple(args.stages))}
+            print(json.dumps({k: row[k] for k in ("seed", "tp", "fp", "fn", "precision", "recall", "on_artefact",
+                                                  "observation", "error", "wall_s")}), flush=True)
             rows.append(row)
         result[name] = {"summary": summarize(rows), "scenes": rows}
     emit(result, args.out)

@@ -62,6 +62,7 @@ def test_discovery_scores_count_phantoms_and_match_one_to_one():
     f1_40 = np.where(f1_20 > 0.5, 1.0, f1_20)
     s = scores(f1_20, f1_40)
     assert (s["objects"], s["accepted"], s["matched"], s["phantoms"]) == (3, 4, 2, 2)
+    assert (s["tp"], s["fp"], s["fn"]) == (2, 2, 1)
     assert s["recall"] == round(2 / 3, 4) and s["precision"] == 0.5
     assert s["located"] == 3 and s["matches"] == [(0, 0), (1, 2)]
     none = scores(np.zeros((3, 0)), np.zeros((3, 0)))
