@@ -108,3 +108,25 @@ def test_convert_scale_counts_the_memory_of_descendants():
         subprocess.run(["pkill", "-P", str(parent.pid)])
         parent.kill()
         parent.wait()
+
+
+def test_gsplat_fit_sfm_points_lie_on_the_seen_surface(tmp_path):
+    """fit_gsplat's SfM-like initialisation: points on the surface cameras see (within the noise),
+    a share of mismatches, and the COLMAP file a trainer reads gives them back."""
+    import numpy as np
+    import trimesh
+
+    from experiments.fit_gsplat import read_points3d, sfm_points
+    from phirie_jax.io.colmap import write_colmap_text
+    from tests.observe.helpers import tabletop_folder
+
+    _, cams, _ = tabletop_folder(tmp_path, num_cameras=6, width=80, height=60)
+    points, colours, record = sfm_points(tmp_path, 500, 0.002, 0.1, seed=1)
+    assert points.shape == (500, 3) and colours.dtype == np.uint8 and record["outliers"] > 20
+    surface = trimesh.load(tmp_path / "surface.ply", force="mesh")
+    _, dist, _ = trimesh.proximity.closest_point(surface, points)
+    assert np.mean(dist < 0.01) > 0.85 and np.mean(dist > 0.05) > 0.02   # on it, but for the mismatches
+    assert np.mean((colours[dist < 0.01] == 128).all(1)) > 0.95           # the grey photos' colour
+    write_colmap_text(tmp_path / "sparse" / "0", cams, points=points, colors=colours)
+    back, rgb = read_points3d(tmp_path / "sparse" / "0" / "points3D.txt")
+    np.testing.assert_allclose(back, points, atol=1e-9) and np.testing.assert_allclose(rgb * 255, colours)
