@@ -129,9 +129,9 @@ class AutoMaskConfig:
         support_relief: ours — a support need not be flat (a duvet, a cloth): samples up to this
             far from its plane measure its relief (``relief_cell``), and heights are measured
             from that surface. 0: flat supports only.
-        relief_cell: the relief is measured on cells of this edge (a lower quartile per cell, so
-            an object covering less than three quarters of a cell's support samples does not
-            raise it) and interpolated between them: folds wider than about two cells are support.
+        relief_cell: the relief is measured on cells of this edge (the densest layer of each
+            cell's samples, so an object covering less of a cell than the support does not raise
+            it) and interpolated between them: folds wider than about two cells are support.
         footprint_cell: grid cell of a support's 2D footprint (holes under objects are filled).
         cluster_eps: points closer than this are in the same cluster (the synthetic scenes keep
             objects ≥ 2 cm apart; touching objects merge, as in any geometric segmentation).

@@ -15,9 +15,10 @@ support is found from the samples' *positions*:
    support's footprint within ``max_object_height`` of it is not a support (a fold of a soft
    support, the flat top of what stands on it); a table over the floor is farther apart.
 3. Relief (soft supports: a duvet, a cloth): the support's offset from its plane on a grid of
-   ``relief_cell`` — the lower quartile of the samples within ``support_relief`` of the plane in
-   each cell, cells without enough of them (under an object, never seen) filled from their
-   nearest neighbours, median-smoothed, bilinear in between. Heights above the support are measured from this surface,
+   ``relief_cell`` — the densest layer of the samples within ``support_relief`` of the plane in
+   each cell (the support's own surface, not the sides of what stands on it or of its edge),
+   cells without enough of them (under an object, never seen) filled from their nearest
+   neighbours, median-smoothed, bilinear in between. Heights above the support are measured from this surface,
    so a fold of the duvet is support and an object sitting in a hollow of it stands on it.
    A flat table gets a relief of about zero.
 
@@ -36,7 +37,6 @@ from phirie_jax.observe.config import AutoMaskConfig
 
 HYPOTHESES = 256          # RANSAC hypotheses of each kind (triples, horizontal through a sample)
 SCORE_SAMPLES = 40_000    # samples the hypotheses are scored on (all of them are used for the refit)
-RELIEF_QUANTILE = 25      # a cell's support height: this percentile of its support samples' offsets
 RELIEF_MIN_SAMPLES = 4    # samples a cell needs to measure its relief; others are filled in
 RELIEF_SMOOTH = 3         # median filter (cells) over the relief
 MAX_SUPPORTS = 4
@@ -199,18 +199,23 @@ def _footprint(inliers: np.ndarray, basis: np.ndarray, cell: float) -> tuple[np.
     return origin, ndimage.binary_fill_holes(ndimage.binary_closing(grid, iterations=2, border_value=0))
 
 
-def _relief(offsets: np.ndarray, idx: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def _relief(offsets: np.ndarray, idx: np.ndarray, shape: tuple[int, int], bin_width: float) -> np.ndarray:
     """(P, Q) per-cell support offset from the samples' plane offsets (N,) in relief cells idx
-    (N, 2): the ``RELIEF_QUANTILE`` percentile where a cell has ``RELIEF_MIN_SAMPLES``, else the
-    nearest measured cell's; then a median filter."""
+    (N, 2): the median of the densest ``bin_width`` bin of a cell's offsets where it has
+    ``RELIEF_MIN_SAMPLES`` (the support's own layer, not the sides of what stands on it or of the
+    support's edge), else the nearest measured cell's; then a median filter."""
     flat = idx[:, 0] * shape[1] + idx[:, 1]
     order = np.lexsort((offsets, flat))
     flat, values = flat[order], offsets[order]
     cells, start, count = np.unique(flat, return_index=True, return_counts=True)
-    measured = count >= RELIEF_MIN_SAMPLES
     relief = np.full(shape[0] * shape[1], np.nan)
-    pick = start[measured] + (RELIEF_QUANTILE / 100.0 * (count[measured] - 1)).astype(np.int64)
-    relief[cells[measured]] = values[pick]
+    for cell, first, n in zip(cells, start, count):
+        if n < RELIEF_MIN_SAMPLES:
+            continue
+        v = values[first:first + n]
+        bins = np.floor((v - v[0]) / bin_width).astype(np.int64)
+        densest = np.argmax(np.bincount(bins))
+        relief[cell] = np.median(v[(bins >= densest - 1) & (bins <= densest + 1)])
     relief = relief.reshape(shape)
     missing = np.isnan(relief)
     if missing.all():
@@ -235,7 +240,8 @@ def _support(points: np.ndarray, near: np.ndarray, normal: np.ndarray, offset: f
     coarse = max(config.relief_cell, cell)
     shape = tuple(int(np.ceil(n * cell / coarse)) + 1 for n in footprint.shape)
     idx = np.floor((members @ basis.T - origin) / coarse).astype(np.int64)
-    relief = _relief(plane_offsets, idx, shape) if config.support_relief > 0 else np.zeros(shape)
+    relief = (_relief(plane_offsets, idx, shape, config.plane_threshold / 2) if config.support_relief > 0
+              else np.zeros(shape))
     support = Support(normal, float(offset), int(near.sum()), float(near.sum() * sample_voxel**2), origin,
                       footprint, basis, cell, relief, coarse, source)
     residual = plane_offsets - support.relief_at(members)
@@ -288,7 +294,8 @@ def find_supports(points: np.ndarray, up: np.ndarray, config: AutoMaskConfig, sa
             if source == "ransac":  # the best plane left is too small or tilted: no more supports
                 break
             continue
-        over = _stacked(points[pool[inl]], normal, offset, supports, config.max_object_height)
+        over = _stacked(points[np.abs(points @ normal - offset) < thr], normal, offset, supports,
+                        config.max_object_height)
         if over is not None:
             tried.append({**record, "reason": f"lies over support {over}'s footprint within "
                           f"max_object_height {config.max_object_height} m of it: its relief or what stands on it"})
