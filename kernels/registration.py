@@ -20,7 +20,8 @@ Search (the paper's "Object candidates and registered assets"):
 
 The host picks among the refined hypotheses (the candidate's own up = axis +z first, the
 other five axes on retry). Each step is written for one hypothesis and batched with
-``vmap`` (through ``lax.map(batch_size=...)``) in ``register``, the one jitted entry.
+``vmap`` (through ``lax.map(batch_size=...)``) in ``register``, the one jitted entry; given a
+``kernels.sharding.BatchMesh``, the hypotheses are spread over its devices (each maps its own).
 Shapes are static: P has ``SearchSpec.model_points`` rows in random order (its leading
 rows are the sweep and ICP subsets), Q is padded to a power of two with a mask and its
 valid rows come first, in random order (its leading rows are the sweep subset).
@@ -36,6 +37,7 @@ import numpy as np
 
 from kernels.chamfer import FAR, clipped_chamfer_support, nearest_point
 from kernels.pytree import pytree_dataclass
+from kernels.sharding import BatchMesh, map_rows
 
 # Signed source-up axes; index 0 (+z) is the candidate's own up, tried first by default.
 UP_AXES = np.array([[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], np.float64)
@@ -75,7 +77,8 @@ class SearchSpec:
         icp_iterations / scale_iterations: fixed iteration counts of the two refinements.
         rotation: "full" (3D Kabsch) or "yaw" (rotation about +z only) in ICP.
         chunk: queries per brute-force nearest-neighbour block.
-        hypothesis_batch: hypotheses vmapped together (memory ∝ batch · chunk · targets).
+        hypothesis_batch: hypotheses vmapped together on each device (memory ∝ batch · chunk ·
+            targets).
         snap_to_support: after refinement, move each hypothesis vertically so its lowest point
             is on the support when it is within τ of it (and a support is given).
     """
@@ -275,12 +278,15 @@ def refine_scale(model, obs, obs_mask, rotation, scale, translation, max_corr, i
 # --- the batched program -------------------------------------------------------------
 
 
-def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: SearchSpec) -> Registration:
-    """Search, refine and score; see the module docstring. ``spec`` is static.
+def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: SearchSpec,
+             mesh: BatchMesh | None = None) -> Registration:
+    """Search, refine and score; see the module docstring. ``spec`` and ``mesh`` are static.
 
     model (model_points, 3) canonical, random order; obs (Nq, 3) gravity frame, valid rows
     first; obs_mask (Nq,) bool; support_z () height of the support plane, used when
     has_support () bool; tau () clip radius; max_corr () ICP correspondence radius (metres).
+    mesh: the devices the hypotheses (of the sweep, then of the refinement) are spread over,
+    ``hypothesis_batch`` at a time on each (``kernels.sharding.map_rows``); None: this device.
     """
     dtype = obs.dtype
     p_sweep = model[: spec.sweep_model_points]
@@ -308,12 +314,14 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     rots = yaw_matrix(yaws[y_idx]) @ axis_rots[a_idx]      # (H, 3, 3)
     scales = s0[a_idx] * mults[m_idx]                        # (H,)
 
-    def sweep_one(h):
+    def sweep_one(shared, h):
+        p, q, m, centre, base, clip = shared
         rot, s = h
-        t = place(p_sweep, rot, s, centre_xy, base_z)
-        return hypothesis_energy(p_sweep, q_sweep, m_sweep, rot, s, t, tau, spec.chunk)[0]
+        t = place(p, rot, s, centre, base)
+        return hypothesis_energy(p, q, m, rot, s, t, clip, spec.chunk)[0]
 
-    energy = jax.lax.map(sweep_one, (rots, scales), batch_size=spec.hypothesis_batch)
+    energy = map_rows(sweep_one, (p_sweep, q_sweep, m_sweep, centre_xy, base_z, tau), (rots, scales),
+                      spec.hypothesis_batch, mesh)
     per_axis = energy.reshape(len(spec.axes), spec.hypotheses_per_axis)
     axis_best = jnp.min(per_axis, axis=1)
     if spec.own_searched:
@@ -326,19 +334,20 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     _, best = jax.lax.top_k(-per_axis[chosen], spec.top_k)                          # (refined axes, k)
     pick = (best + chosen[:, None] * spec.hypotheses_per_axis).reshape(-1)
 
-    def refine_one(h):
+    def refine_one(shared, h):
+        full, p, q, m, q_full, m_full, centre, base, supported, clip, corr = shared
         rot, s = h
-        t = place(p_icp, rot, s, centre_xy, base_z)
-        rot, t = icp(p_icp, q_icp, m_icp, rot, s, t, max_corr, spec.icp_iterations,
-                     spec.rotation == "yaw", spec.chunk)
-        s, t = refine_scale(p_icp, q_icp, m_icp, rot, s, t, max_corr, spec.scale_iterations, spec.chunk)
+        t = place(p, rot, s, centre, base)
+        rot, t = icp(p, q, m, rot, s, t, corr, spec.icp_iterations, spec.rotation == "yaw", spec.chunk)
+        s, t = refine_scale(p, q, m, rot, s, t, corr, spec.scale_iterations, spec.chunk)
         if spec.snap_to_support:
-            gap = base_z - (jnp.min(s * model @ rot[2]) + t[2])
-            t = t.at[2].add(jnp.where(has_support & (jnp.abs(gap) < tau), gap, 0.0))
-        e, mq, qm, sup = hypothesis_energy(model, q_score, m_score, rot, s, t, tau, spec.chunk)
+            gap = base - (jnp.min(s * full @ rot[2]) + t[2])
+            t = t.at[2].add(jnp.where(supported & (jnp.abs(gap) < clip), gap, 0.0))
+        e, mq, qm, sup = hypothesis_energy(full, q_full, m_full, rot, s, t, clip, spec.chunk)
         return rot, t, s, e, mq, qm, sup
 
-    rot, t, s, e, mq, qm, sup = jax.lax.map(refine_one, (rots[pick], scales[pick]),
-                                            batch_size=min(spec.hypothesis_batch, len(pick)))
+    shared = (model, p_icp, q_icp, m_icp, q_score, m_score, centre_xy, base_z, has_support, tau, max_corr)
+    rot, t, s, e, mq, qm, sup = map_rows(refine_one, shared, (rots[pick], scales[pick]),
+                                         spec.hypothesis_batch, mesh)
     axis_ids = jnp.asarray(spec.axes, jnp.int32)[a_idx[pick]]
     return Registration(rot, t, s, e, mq, qm, sup, axis_ids, yaws[y_idx[pick]], s0[a_idx[pick]], per_axis)

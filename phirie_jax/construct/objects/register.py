@@ -3,6 +3,7 @@
 One compiled program per (Q bucket, search shape): Q is padded to a power of two
 (``obs_bucket``) and P always has ``RegistrationConfig.points`` rows, so every candidate
 of every instance in the same bucket reuses the program (``TRACE_COUNTS`` counts traces).
+``search`` spreads the hypotheses over every device JAX sees (or those given) with one program.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from kernels.registration import (
     robust_extents,
     scale_init,
 )
+from kernels.sharding import BatchMesh
 from phirie_jax.construct.objects.config import RegistrationConfig
 
 TRACE_COUNTS = {"register": 0, "score": 0}
@@ -30,9 +32,9 @@ OWN_AXIS = (0,)          # +z: the candidate's own up
 OTHER_AXES = (1, 2, 3, 4, 5)
 
 
-def _traced_register(model, obs, mask, support_z, has_support, tau, max_corr, *, spec):
+def _traced_register(model, obs, mask, support_z, has_support, tau, max_corr, *, spec, mesh):
     TRACE_COUNTS["register"] += 1  # runs only while tracing: once per compiled program
-    return register(model, obs, mask, support_z, has_support, tau, max_corr, spec)
+    return register(model, obs, mask, support_z, has_support, tau, max_corr, spec, mesh)
 
 
 def _traced_score(model, obs, mask, rotation, scale, translation, tau, *, chunk):
@@ -41,7 +43,7 @@ def _traced_score(model, obs, mask, rotation, scale, translation, tau, *, chunk)
     return energy, mq, qm, support, scale * scale_init(model @ rotation.T, robust_extents(obs, mask))
 
 
-_register_jit = jax.jit(_traced_register, static_argnames=("spec",))
+_register_jit = jax.jit(_traced_register, static_argnames=("spec", "mesh"))
 _score_jit = jax.jit(_traced_score, static_argnames=("chunk",))
 
 
@@ -128,13 +130,14 @@ def _matrix(rotation, scale, translation) -> np.ndarray:
 
 
 def search(model: np.ndarray, obs: Observation, config: RegistrationConfig, axes: tuple[int, ...],
-           snap: bool = True) -> tuple[list[Hypothesis], Registration]:
+           snap: bool = True, devices=None) -> tuple[list[Hypothesis], Registration]:
     """Register one candidate over ``axes``: the best refined hypothesis of each axis (in the
-    order of ``axes``) and the kernel's raw output."""
+    order of ``axes``) and the kernel's raw output. The hypotheses are spread over ``devices``
+    (``kernels.sharding.resolve_devices``: None, every device; one program for any count)."""
     spec = search_spec(config, axes, snap)
     out = _register_jit(jnp.asarray(model), jnp.asarray(obs.points), jnp.asarray(obs.mask),
                         jnp.float32(obs.support_z), jnp.bool_(obs.has_support), jnp.float32(config.tau),
-                        jnp.float32(config.icp_max_correspondence), spec=spec)
+                        jnp.float32(config.icp_max_correspondence), spec=spec, mesh=BatchMesh.over(devices))
     out = jax.device_get(out)
     best: dict[int, Hypothesis] = {}
     for r in range(len(out.energy)):

@@ -26,6 +26,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from kernels.sharding import resolve_devices
 from phirie_jax.construct.physics.body import ObjectBody, add_body, object_body
 from phirie_jax.construct.physics.collision import ConvexPart, MeshError, hull_part
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
@@ -190,8 +191,10 @@ def resolve_backend(backend: str, candidates: int | None = None) -> str:
 
 
 def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfig(),
-              backend: str | None = None) -> list[DropResult]:
-    """Drop-test every body; MJX or Warp run each part bucket as one batched program."""
+              backend: str | None = None, devices=None) -> list[DropResult]:
+    """Drop-test every body; MJX or Warp run each part bucket as one batched program, its
+    candidates spread over ``devices`` (``kernels.sharding.resolve_devices``: None, every device
+    JAX sees; for Warp, every GPU it sees)."""
     backend = resolve_backend(backend or config.backend, len(bodies))
     results: list[DropResult | None] = [None] * len(bodies)
     groups: dict[int, list[int]] = {}
@@ -208,14 +211,15 @@ def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfi
         if backend == "warp":
             from phirie_jax.construct.physics import warp_batch
 
-            run = warp_batch.run([models[k] for k in members], np.stack([qpos0[k] for k in members]), config)
+            run = warp_batch.run([models[k] for k in members], np.stack([qpos0[k] for k in members]), config,
+                                 devices=None if devices is None else resolve_devices(devices))
             settled, final = run.settled, run.final
         elif backend == "mjx":
             from phirie_jax.construct.physics import mjx_batch
 
             template_model, template = bucket_template(bucket, config)
             settled, final = mjx_batch.run(template_model, template, [models[k] for k in members],
-                                           np.stack([qpos0[k] for k in members]), config)
+                                           np.stack([qpos0[k] for k in members]), config, devices)
         else:
             runs = [run_reference(models[k], qpos0[k], config) for k in members]
             settled, final = np.stack([r[0] for r in runs]), np.stack([r[1] for r in runs])
@@ -226,7 +230,8 @@ def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfi
 
 def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Sequence[np.ndarray],
                      up=(0.0, 0.0, 1.0), categories: Sequence[str | None] | None = None,
-                     config: PhysicsConfig = PhysicsConfig(), backend: str | None = None) -> list[DropResult]:
+                     config: PhysicsConfig = PhysicsConfig(), backend: str | None = None,
+                     devices=None) -> list[DropResult]:
     """Drop-test candidate placements with the fast single-hull stand-in, all in one batch.
 
     Args:
@@ -236,6 +241,7 @@ def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Seq
         categories: per-candidate category for the mass prior (default: the config's mass).
         config: physics priors and the drop test's settings.
         backend: "mjx", "warp", "mujoco" or "auto" (default ``config.drop_test.backend``).
+        devices: the devices a batch is spread over (``drop_test``; None: all).
 
     A candidate whose hull is empty or flat, or whose pose is not a similarity, gets a result
     with ``error`` set; the others are unaffected.
@@ -250,7 +256,7 @@ def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Seq
             index.append(k)
         except (ValueError, MeshError) as err:
             results[k] = DropResult(None, None, None, None, None, backend, f"{type(err).__name__}: {err}")
-    for k, result in zip(index, drop_test(bodies, config.drop_test, backend)):
+    for k, result in zip(index, drop_test(bodies, config.drop_test, backend, devices)):
         results[k] = result
     return results  # type: ignore[return-value]
 

@@ -11,6 +11,11 @@ those models), are stacked along a leading axis and vmapped over. The candidate 
 padded to a power of two, so compile time does not grow with it and a second batch of the
 same bucket reuses the program (``TRACES`` counts traces; the tests check it).
 
+The candidates are spread over the devices of a ``kernels.sharding.BatchMesh`` (every device JAX
+sees, unless told otherwise): the batch is padded to a multiple of their count as well, its
+rows split over them, the template replicated; one program for any number of devices, each
+device simulating its own candidates.
+
 ``simulate_one`` is the single-candidate kernel (pure: arrays in, arrays out); ``run``
 vmaps it in one place.
 """
@@ -25,6 +30,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from kernels.sharding import BatchMesh, pad_rows
 from phirie_jax.construct.physics.config import DropTestConfig
 
 # Model fields that vary per candidate (floats): stacked and vmapped.
@@ -123,42 +129,58 @@ def simulate_one(template: mjx.Model, data0: mjx.Data, params: dict, qpos0: jax.
     return settled, data.qpos
 
 
-@functools.partial(jax.jit, static_argnums=(4, 5, 6))
-def _batched(template, data0, params, qpos0, settle_steps, free_steps, unroll):
-    return jax.vmap(simulate_one, in_axes=(None, None, 0, 0, None, None, None))(
-        template, data0, params, qpos0, settle_steps, free_steps, unroll)
+@functools.partial(jax.jit, static_argnums=(4, 5, 6, 7))
+def _batched(template, data0, params, qpos0, settle_steps, free_steps, unroll, mesh: BatchMesh):
+    def local(template, data0, params, qpos0):
+        return jax.vmap(simulate_one, in_axes=(None, None, 0, 0, None, None, None))(
+            template, data0, params, qpos0, settle_steps, free_steps, unroll)
+
+    return mesh.map(local, (False, False, True, True))(template, data0, params, qpos0)
 
 
-def padded_count(n: int, config: DropTestConfig) -> int:
-    """Candidates are padded to a power of two ≥ ``min_batch`` (≤ ``max_batch``)."""
-    return min(config.max_batch, max(config.min_batch, 1 << max(0, (n - 1).bit_length())))
+def padded_count(n: int, config: DropTestConfig, mesh: BatchMesh | None = None) -> int:
+    """Candidates are padded to a power of two ≥ ``min_batch`` (≤ ``max_batch``), then to a
+    multiple of the mesh's device count."""
+    count = min(config.max_batch, max(config.min_batch, 1 << max(0, (n - 1).bit_length())))
+    return count if mesh is None else mesh.padded(count)
 
 
-def device_args(template: tuple[mjx.Model, mjx.Data], params: dict, qpos0: np.ndarray) -> tuple:
-    return (*template, jax.tree.map(jnp.asarray, params), jnp.asarray(qpos0))
+def device_args(template: tuple[mjx.Model, mjx.Data], params: dict, qpos0: np.ndarray,
+                mesh: BatchMesh | None = None) -> tuple:
+    """The program's arrays on ``mesh`` (default: every device): the template replicated, the
+    candidates' rows (padded to a multiple of the device count) split over the devices."""
+    mesh = mesh or BatchMesh.over()
+    size = mesh.padded(len(qpos0))
+    rows = mesh.put_rows(pad_rows(({k: np.asarray(v) for k, v in params.items()}, np.asarray(qpos0)), size))
+    return (*mesh.put_replicated(template), *rows)
 
 
-def lower(template: tuple[mjx.Model, mjx.Data], params: dict, qpos0: np.ndarray, config: DropTestConfig):
+def lower(template: tuple[mjx.Model, mjx.Data], params: dict, qpos0: np.ndarray, config: DropTestConfig,
+          mesh: BatchMesh | None = None):
     """The batch program lowered for these shapes (``.compile()`` it to time compilation alone)."""
-    return _batched.lower(*device_args(template, params, qpos0), config.settle_steps, config.free_steps,
-                          config.unroll)
+    mesh = mesh or BatchMesh.over()
+    return _batched.lower(*device_args(template, params, qpos0, mesh), config.settle_steps, config.free_steps,
+                          config.unroll, mesh)
 
 
 def run(template_model: mujoco.MjModel, template: tuple[mjx.Model, mjx.Data], models: list[mujoco.MjModel],
-        qpos0: np.ndarray, config: DropTestConfig) -> tuple[np.ndarray, np.ndarray]:
+        qpos0: np.ndarray, config: DropTestConfig, devices=None) -> tuple[np.ndarray, np.ndarray]:
     """Drop-test ``models`` (all of one bucket, built like ``template_model``; ``template`` is
-    its device copy and initial data) in MJX. Returns qpos after settling and at the end, (N, 7)."""
+    its device copy and initial data) in MJX, spread over ``devices``
+    (``kernels.sharding.resolve_devices``: None, every device). Returns qpos after settling and
+    at the end, (N, 7)."""
+    mesh = BatchMesh.over(devices)
     params = stack_params(template_model, models, config.vertex_budget)
     n = len(models)
-    chunk = padded_count(n, config)
+    chunk = padded_count(n, config, mesh)
     settled, final = [], []
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
         idx = np.arange(start, start + chunk)
         idx = np.where(idx < stop, idx, start)    # pad with copies of the chunk's first candidate
         sub = {k: v[idx] for k, v in params.items()}
-        s, f = _batched(*device_args(template, sub, qpos0[idx]), config.settle_steps, config.free_steps,
-                        config.unroll)
+        s, f = _batched(*device_args(template, sub, qpos0[idx], mesh), config.settle_steps, config.free_steps,
+                        config.unroll, mesh)
         settled.append(np.asarray(s, np.float64)[: stop - start])
         final.append(np.asarray(f, np.float64)[: stop - start])
     return np.concatenate(settled), np.concatenate(final)

@@ -18,6 +18,11 @@ settling, where velocities are zeroed on purpose) a body whose velocities stay b
 ``SLEEP_TOLERANCE`` for MuJoCo's minimum awake time falls asleep, its world's kernels skip it and
 its pose is frozen; the phase ends once every world sleeps (checked every ``GRAPH_STEPS``).
 
+Several GPUs: ``prepare_split`` divides the worlds into contiguous, near-equal parts
+(``kernels.sharding.split``), one bank model per device, and ``simulate_all`` runs them at once:
+Warp launches and graph replays are asynchronous, so every device's phase is launched before any
+result is read (Warp's current device is process-wide, so this is done from one thread).
+
 Needs ``warp-lang`` and ``mujoco-warp`` (``pip install phirie_jax[warp]``); the module imports
 them lazily so the package stays importable without them.
 """
@@ -26,10 +31,12 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
 
+from kernels.sharding import split
 from phirie_jax.construct.physics.config import DropTestConfig
 
 # Per-world model fields: what differs between candidates of one bucket (``mjx_batch.BATCHED``
@@ -58,12 +65,31 @@ def available() -> tuple[bool, str]:
     return True, warp.__version__
 
 
+def warp_devices(devices=None) -> list[str]:
+    """Warp device names to split a batch over: None, every CUDA device Warp sees (else "cpu");
+    names ("cuda:1", "cpu") as given; ``jax.Device`` objects mapped to theirs (a GPU to
+    "cuda:<its ordinal>", CPU devices to one "cpu")."""
+    import warp as wp
+
+    if devices is None:
+        count = wp.get_cuda_device_count()
+        return [f"cuda:{k}" for k in range(count)] if count else ["cpu"]
+    names = []
+    for d in devices:
+        name = d if isinstance(d, str) else ("cpu" if d.platform == "cpu" else f"cuda:{d.local_hardware_id}")
+        if isinstance(d, str) or name not in names:
+            names.append(name)
+    if not names:
+        raise ValueError("warp devices: an empty list (expected None, names such as 'cuda:0', or jax devices)")
+    return names
+
+
 @dataclasses.dataclass(frozen=True)
 class WarpBatchResult:
     settled: np.ndarray   # (N, 7) free-joint qpos after the settling phase
     final: np.ndarray     # (N, 7) ... at the end
-    free_steps_run: int   # free-phase steps actually simulated (fewer with early exit)
-    device: str
+    free_steps_run: int   # free-phase steps actually simulated (fewer with early exit; the most of any device)
+    device: str           # the device, or the devices joined by "," (in the order of the worlds)
 
 
 def bank_model(models: list[mujoco.MjModel], config: DropTestConfig, sleep: bool = False
@@ -193,19 +219,46 @@ class WarpDropBatch:
 
     def simulate(self) -> WarpBatchResult:
         """The protocol from the spawn poses: qpos after settling and at the end."""
-        import warp as wp
+        return simulate_all([self])
 
-        settle, free = self._steps()
-        with wp.ScopedDevice(self.device):
-            self._reset()
-            self._phase(False)
-            _repeat(wp, self.settle_graph, self.config.settle_steps, settle, self.graph_steps)
-            settled = self.data.qpos.numpy().astype(np.float64)
-            self._phase(True)
-            steps = _free_phase(wp, self.free_graph, self.data, self.config.free_steps, self.early_exit, free,
-                                self.graph_steps)
-            wp.synchronize()
-            return WarpBatchResult(settled, self.data.qpos.numpy().astype(np.float64), steps, self.device)
+
+def simulate_all(batches: Sequence[WarpDropBatch]) -> WarpBatchResult:
+    """The protocol of every batch (each on its device), their worlds concatenated in order.
+
+    Each phase is launched on every device before anything is read back: launches are
+    asynchronous, so the devices simulate at once. The settled state is copied on the device
+    (asynchronously too) before the free phase starts. With early exit the free phase goes
+    ``graph_steps`` at a time on every device still awake, then checks them all."""
+    import warp as wp
+
+    steps = {id(b): b._steps() for b in batches}
+    kept = {}
+    for b in batches:
+        with wp.ScopedDevice(b.device):
+            b._reset()
+            b._phase(False)
+            _repeat(wp, b.settle_graph, b.config.settle_steps, steps[id(b)][0], b.graph_steps)
+            kept[id(b)] = wp.clone(b.data.qpos)
+            b._phase(True)
+            if not b.early_exit:
+                _repeat(wp, b.free_graph, b.config.free_steps, steps[id(b)][1], b.graph_steps)
+    done = {id(b): (0 if b.early_exit else b.config.free_steps) for b in batches}
+    awake = [b for b in batches if b.early_exit]
+    while awake:
+        for b in awake:
+            with wp.ScopedDevice(b.device):
+                chunk = min(b.graph_steps, b.config.free_steps - done[id(b)])
+                _repeat(wp, b.free_graph if chunk == b.graph_steps else None, chunk, steps[id(b)][1],
+                        b.graph_steps)
+                done[id(b)] += chunk
+        awake = [b for b in awake if done[id(b)] < b.config.free_steps and b.data.tree_awake.numpy().any()]
+    settled, final = [], []
+    for b in batches:
+        with wp.ScopedDevice(b.device):
+            settled.append(kept[id(b)].numpy().astype(np.float64))
+            final.append(b.data.qpos.numpy().astype(np.float64))
+    return WarpBatchResult(np.concatenate(settled), np.concatenate(final), max(done.values()),
+                           ",".join(b.device for b in batches))
 
 
 def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
@@ -239,10 +292,21 @@ def prepare(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestCon
     return batch
 
 
+def prepare_split(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
+                  devices=None, graph_steps: int = GRAPH_STEPS, options: dict | None = None) -> list[WarpDropBatch]:
+    """The batch divided over ``devices`` (``warp_devices``: None, every GPU): contiguous,
+    near-equal parts of the worlds, each prepared on its device (``prepare``)."""
+    names = warp_devices(devices)
+    qpos0 = np.asarray(qpos0, np.float64).reshape(len(models), -1)
+    return [prepare(models[part], qpos0[part], config, early_exit, name, graph_steps, options)
+            for part, name in zip(split(len(models), len(names)), names)]
+
+
 def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig, early_exit: bool = False,
-        device: str | None = None) -> WarpBatchResult:
-    """Drop-test ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7) in MuJoCo Warp."""
-    return prepare(models, qpos0, config, early_exit, device).simulate()
+        device: str | None = None, devices=None) -> WarpBatchResult:
+    """Drop-test ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7) in MuJoCo Warp,
+    on ``device``, or divided over ``devices`` (``warp_devices``: None, every GPU)."""
+    return simulate_all(prepare_split(models, qpos0, config, early_exit, [device] if device else devices))
 
 
 def _repeat(wp, graph, steps: int, step, graph_steps: int = GRAPH_STEPS) -> None:
@@ -254,22 +318,3 @@ def _repeat(wp, graph, steps: int, step, graph_steps: int = GRAPH_STEPS) -> None
         done = steps // graph_steps * graph_steps
     for _ in range(done, steps):
         step()
-
-
-def _free_phase(wp, graph, data, steps: int, early_exit: bool, step, graph_steps: int = GRAPH_STEPS) -> int:
-    """The free phase; with ``early_exit`` it ends once every world sleeps. Returns the steps run."""
-    if not early_exit:
-        _repeat(wp, graph, steps, step, graph_steps)
-        return steps
-    done = 0
-    while done < steps:
-        chunk = min(graph_steps, steps - done)
-        if graph is not None and chunk == graph_steps:
-            wp.capture_launch(graph)
-        else:
-            for _ in range(chunk):
-                step()
-        done += chunk
-        if not data.tree_awake.numpy().any():
-            break
-    return done

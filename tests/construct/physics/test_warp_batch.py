@@ -63,3 +63,23 @@ def test_warp_follows_mujoco_c_and_gives_its_verdicts():
     ref = drop_test(bodies, SHORT, backend="mujoco")
     assert [r.stable for r in ours] == [r.stable for r in ref]
     assert {r.backend for r in ours} == {"warp"}
+
+
+def test_worlds_split_over_devices_give_the_states_of_one_batch():
+    """Two parts on the CPU stand in for two GPUs: the split, the interleaved phases and the
+    concatenation in world order, with and without the early exit."""
+    import jax
+
+    config = dataclasses.replace(SHORT, settle_time=0.1, free_time=0.25)   # kernel launches dominate on a CPU
+    _, bodies = _cases(5)
+    models = [build_model(b, 1, config) for b in bodies]
+    qpos0 = np.stack([spawn_qpos(b) for b in bodies])
+    assert warp_batch.warp_devices(jax.devices()) == ["cpu"]
+    for early_exit in (False, True):
+        whole = warp_batch.run(models, qpos0, config, early_exit, device="cpu")
+        parts = warp_batch.prepare_split(models, qpos0, config, early_exit, devices=["cpu", "cpu"])
+        assert [len(p.qpos0) for p in parts] == [3, 2]
+        split = warp_batch.simulate_all(parts)
+        assert split.device == "cpu,cpu" and split.free_steps_run == whole.free_steps_run
+        np.testing.assert_array_equal(split.settled, whole.settled)
+        np.testing.assert_array_equal(split.final, whole.final)
