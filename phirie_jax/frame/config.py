@@ -1,7 +1,7 @@
 """How a capture's own frame becomes the world: which way is up, and metres per capture unit.
 
 Given on the command line (``--up``, ``--scale``, ``--known-size``, ``--known-distance``,
-``--metric``) or declared once in the scene folder's ``frame.json`` (the same keys, e.g.
+``--metric``, ``--marker-size``) or declared once in the scene folder's ``frame.json`` (the same keys, e.g.
 ``{"metric": true, "up": "+z"}``); the command line wins. What is not given is estimated
 (``phirie_jax.frame.estimate``) and recorded as an estimate with its uncertainty.
 """
@@ -35,6 +35,11 @@ class FrameConfig:
             the distance between them in metres.
         metric: the capture is already in metres (ARKit, Polycam, ScanNet++ …); ScanNet++
             folders are recognised without it.
+        marker_size: the side in metres of the black square of the ArUco/AprilTag markers printed
+            and laid in the scene (e.g. 0.05): they are found in the photos, triangulated, and
+            give the scale; their plane gives up.
+        marker_dictionary: the markers' OpenCV dictionary, e.g. DICT_4X4_50 or
+            DICT_APRILTAG_36h11 (default: the common families are all searched).
     """
 
     up: str | None = None
@@ -42,8 +47,10 @@ class FrameConfig:
     known_size: str | None = None
     known_distance: tuple[float, float, float, float, float, float, float] | None = None
     metric: bool = False
+    marker_size: float | None = None
+    marker_dictionary: str | None = None
 
-    def checked(self) -> "FrameConfig":
+    def checked(self) -> FrameConfig:
         """The config itself when every option is usable; else ``OptionError`` naming the option."""
         if self.up is not None and self.up not in AXES:
             raise OptionError("--up", f"{self.up!r} (expected one of {', '.join(AXES)})")
@@ -57,9 +64,17 @@ class FrameConfig:
                 raise OptionError("--known-distance", f"{self.known_distance} (expected X0 Y0 Z0 X1 Y1 Z1 METRES)")
             if values[6] <= 0 or np.linalg.norm(values[3:6] - values[:3]) <= 0:
                 raise OptionError("--known-distance", "expected two different points and a positive distance in metres")
+        if self.marker_size is not None and not (math.isfinite(self.marker_size) and self.marker_size > 0):
+            raise OptionError("--marker-size", f"{self.marker_size} (expected the markers' side in metres, e.g. 0.05)")
+        if self.marker_dictionary is not None and not valid_dictionary(self.marker_dictionary):
+            raise OptionError("--marker-dictionary", f"{self.marker_dictionary!r} (expected an OpenCV ArUco "
+                              "dictionary such as DICT_4X4_50, DICT_6X6_250 or DICT_APRILTAG_36h11)")
+        if self.marker_dictionary is not None and self.marker_size is None:
+            raise OptionError("--marker-dictionary", "given without --marker-size")
         given = [name for name, on in (("--scale", self.scale is not None), ("--known-size", self.known_size),
                                        ("--known-distance", self.known_distance is not None),
-                                       ("--metric", self.metric)) if on]
+                                       ("--metric", self.metric), ("--marker-size", self.marker_size is not None))
+                 if on]
         if len(given) > 1:
             raise OptionError(given[1], f"given with {given[0]} (expected one way to set the scale)")
         return self
@@ -80,6 +95,13 @@ class FrameConfig:
     @property
     def up_axis(self) -> np.ndarray | None:
         return None if self.up is None else np.asarray(AXES[self.up], np.float64)
+
+
+def valid_dictionary(name: str) -> bool:
+    """Whether OpenCV's ``cv2.aruco`` has a predefined dictionary of this name."""
+    import cv2
+
+    return name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)
 
 
 def scene_frame_config(root: Path) -> FrameConfig:
@@ -104,6 +126,7 @@ def scene_frame_config(root: Path) -> FrameConfig:
 def merged(declared: FrameConfig, given: FrameConfig) -> FrameConfig:
     """The command line's options over the scene folder's: ``up`` separately, the scale as a whole
     (any scale option given replaces the declared one)."""
-    scale_given = any(v for v in (given.scale, given.known_size, given.known_distance, given.metric))
+    scale_given = any(v for v in (given.scale, given.known_size, given.known_distance, given.metric,
+                                  given.marker_size))
     scale_from = given.checked() if scale_given else declared.checked()
     return dataclasses.replace(scale_from, up=given.up if given.up is not None else declared.up).checked()

@@ -11,6 +11,7 @@
     gt/objects/<id>/{canonical,world}.obj
     gt/background.ply      floor + table Gaussians including the tabletop under the objects
     gt/labels.npy          (N,) uint16 instance label of every capture Gaussian
+    gt/markers.json        with ``marker``: the printed marker's dictionary, id, side, corners
 
 Everything is seeded: the same preset and seed give the same files.
 """
@@ -32,6 +33,8 @@ from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.transforms_json import write_transforms_json
 from phirie_jax.synthetic import shapes
 from phirie_jax.synthetic.capture import LabelledGaussians, blob_gaussians, sample_surface, surface_gaussians
+from phirie_jax.synthetic.marker import TRUTH_FILE as MARKER_TRUTH
+from phirie_jax.synthetic.marker import PrintedMarker, place_marker
 from phirie_jax.types import Camera
 
 MASK_COVERAGE = 0.5     # a mask pixel needs this much of one instance's rendered weight
@@ -89,12 +92,14 @@ class PlacedObject:
         return mesh
 
 
-def place_objects(rng, config: SynthConfig, furniture: shapes.Furniture, seed: int) -> list[PlacedObject]:
-    """Non-overlapping random placements and yaws on the tabletop (rejection sampling)."""
+def place_objects(rng, config: SynthConfig, furniture: shapes.Furniture, seed: int,
+                  keep_clear: tuple[tuple[np.ndarray, float], ...] = ()) -> list[PlacedObject]:
+    """Non-overlapping random placements and yaws on the tabletop (rejection sampling), clear of
+    the (centre (2,), radius) discs in ``keep_clear``."""
     count = int(rng.integers(config.num_objects[0], config.num_objects[1] + 1))
     categories = (list(rng.permutation(shapes.CATEGORIES))[:count] if count <= len(shapes.CATEGORIES)
                   else list(rng.choice(shapes.CATEGORIES, count)))   # more objects than categories: repeats
-    placed: list[tuple[np.ndarray, float]] = []
+    placed: list[tuple[np.ndarray, float]] = list(keep_clear)
     objects = []
     half = furniture.top_extent / 2 - TABLE_MARGIN
     for index, category in enumerate(categories):
@@ -166,16 +171,21 @@ class SyntheticScene:
     capture: LabelledGaussians      # what the "reconstruction" holds
     background: LabelledGaussians   # true background, hidden tabletop included
     cameras: list[Camera]
+    marker: PrintedMarker | None = None
 
 
-def build_scene(preset: str = "default", seed: int = 0) -> SyntheticScene:
-    """Geometry, Gaussians and cameras of one synthetic scene (no files, no rendering)."""
+def build_scene(preset: str = "default", seed: int = 0, marker: float = 0.0) -> SyntheticScene:
+    """Geometry, Gaussians and cameras of one synthetic scene (no files, no rendering); ``marker``
+    > 0: an ArUco marker of that side (metres) printed on the table top (``synthetic.marker``)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r} (expected one of {sorted(PRESETS)})")
     config = PRESETS[preset]
     rng = np.random.default_rng(seed)
     furniture = shapes.make_furniture(floor_size=config.floor_size, top=config.table_top)
-    objects = place_objects(rng, config, furniture, seed)
+    printed = (place_marker(marker, furniture.top_extent, furniture.table_top_z, TABLE_MARGIN) if marker > 0
+               else None)
+    clear = () if printed is None else ((printed.centre[:2], printed.sheet / np.sqrt(2)),)
+    objects = place_objects(rng, config, furniture, seed, clear)
 
     parts, hidden_parts = [], []
     for mesh, colour, spacing in ((furniture.floor, shapes.floor_colour, config.floor_spacing),
@@ -188,8 +198,15 @@ def build_scene(preset: str = "default", seed: int = 0) -> SyntheticScene:
         on_top = np.abs(pts[:, 2] - furniture.table_top_z) < 1e-6
         for obj in objects:
             hidden[on_top] |= _inside_footprint(pts[on_top, :2], obj)
+        if printed is not None:  # the sheet replaces the table top under it
+            under = np.zeros(len(pts), bool)
+            under[on_top] = printed.covers(pts[on_top, :2])
+            g, hidden = g.subset(~under), hidden[~under]
         parts.append(g)
         hidden_parts.append(hidden)
+    if printed is not None:
+        parts.append(printed.gaussians(rng))
+        hidden_parts.append(np.zeros(parts[-1].data.num, bool))
     background = LabelledGaussians.concatenate(parts)
     hidden = np.concatenate(hidden_parts)
 
@@ -213,7 +230,7 @@ def build_scene(preset: str = "default", seed: int = 0) -> SyntheticScene:
         rng.uniform(0.15, 0.5, config.floaters), 0)
     capture = LabelledGaussians.concatenate([background.subset(~hidden), *object_parts, floaters])
     cameras = ring_cameras(config, rng, furniture.table_top_z + 0.08)
-    return SyntheticScene(config, seed, furniture, objects, capture, background, cameras)
+    return SyntheticScene(config, seed, furniture, objects, capture, background, cameras, printed)
 
 
 def surface_mesh(scene: SyntheticScene):
@@ -241,6 +258,8 @@ def write_ground_truth(scene: SyntheticScene, out: Path) -> None:
         write_mesh(out / "gt" / "objects" / str(o.id) / "world.obj", o.world_mesh())
     write_text(out / TRUTH_OBJECTS, json.dumps(ground_truth_json(scene), indent=2))
     write_gaussian_ply(out / "gt" / "background.ply", scene.background.data)
+    if scene.marker is not None:
+        write_text(out / MARKER_TRUTH, json.dumps([scene.marker.truth()], indent=2))
     buf = io.BytesIO()
     np.save(buf, scene.capture.labels)
     write_bytes(out / "gt" / "labels.npy", buf.getvalue())
@@ -288,10 +307,12 @@ def render_views(scene: SyntheticScene, progress=None) -> tuple[list[np.ndarray]
     return images, masks
 
 
-def synthesize(out_dir: str | Path, preset: str = "default", seed: int = 0, progress=None) -> SyntheticScene:
-    """Build, render and write one synthetic scene folder (see the module docstring)."""
+def synthesize(out_dir: str | Path, preset: str = "default", seed: int = 0, progress=None,
+               marker: float = 0.0) -> SyntheticScene:
+    """Build, render and write one synthetic scene folder (see the module docstring); ``marker``
+    > 0 prints a marker of that side (metres) on the table top."""
     out = Path(out_dir)
-    scene = build_scene(preset, seed)
+    scene = build_scene(preset, seed, marker)
     images, masks = render_views(scene, progress)
     for cam, image, mask in zip(scene.cameras, images, masks):
         write_png(out / "images" / cam.name, image)
