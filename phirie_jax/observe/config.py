@@ -148,7 +148,9 @@ class AutoMaskConfig:
         min_view_fraction: ... and at least this fraction of the views that look at it (its
             centre in the image, in front of the camera, not hidden by the surface). Ours: a
             real object is seen from most views that face it; the floor bumps gsplat's
-            densification leaves were seen in 4–8 of 36 (0.11–0.22).
+            densification leaves were seen in 4–8 of 36 (0.11–0.22). Both rules hold again for
+            each instance after association (its supporting views, and its ``confidence``: those
+            views over the views that have its centre in the image).
         min_view_pixels: sampled pixels (on ``sample_stride``) a view needs on a cluster to see it.
     """
 

@@ -327,14 +327,36 @@ def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config
     with manifest.timed("observe.consistency"):
         kept = _consistent_points(groups, lifted.mask_paths, cameras, config, out_dir, manifest, raycaster)
     instances, failed = [], []
+    rejected = [{k: v for k, v in r.items() if k != "proposal"} for r in assoc.rejected]
     with manifest.timed("observe.write"):
         for (instance_id, members), (points, support, dropped) in zip(groups, kept):
             try:
-                instances.append(instance_record(instance_id, members, points, support, dropped, lifted.mask_paths,
-                                                 cameras, source, out_dir))
+                record = instance_record(instance_id, members, points, support, dropped, lifted.mask_paths,
+                                         cameras, source, out_dir)
             except (OSError, ValueError) as err:
                 failed.append({"id": instance_id, "reason": f"{type(err).__name__}: {err}"})
-    return instances, failed, [{k: v for k, v in r.items() if k != "proposal"} for r in assoc.rejected]
+                continue
+            reason = _seen_too_little(record, config) if source == "auto" else None
+            if reason:
+                (out_dir / record["points"]).unlink(missing_ok=True)
+                rejected.append({"instance": instance_id, "views": len(record["views"]),
+                                 "confidence": record["confidence"], "reason": reason})
+                continue
+            instances.append(record)
+    return instances, failed, rejected
+
+
+def _seen_too_little(record: dict, config: ObserveConfig) -> str | None:
+    """Why an automatically discovered instance is not one: supported by fewer than ``auto.min_views``
+    views, or by less than ``auto.min_view_fraction`` of the views that have it in the image (its
+    ``confidence``: no score backs an automatic mask). None when it was seen enough."""
+    views, share = len(record["views"]), record["confidence"]
+    if views < config.auto.min_views:
+        return f"supported by {views} views (< auto.min_views {config.auto.min_views})"
+    if share < config.auto.min_view_fraction:
+        return (f"supported by {views} views, {share:.2f} of those that have it in the image "
+                f"(< auto.min_view_fraction {config.auto.min_view_fraction})")
+    return None
 
 
 def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dict[int, str],

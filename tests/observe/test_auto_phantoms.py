@@ -116,3 +116,15 @@ def test_frame_support_plane_from_the_frame_record():
     normal, offset = frame_support_plane(record)
     np.testing.assert_allclose(normal, [0, 0, 1], atol=1e-12) and np.testing.assert_allclose(offset, 0.6)
     assert frame_support_plane({**record, "up_source": "given (--up +y)"}) is None
+
+
+def test_automatic_instances_supported_by_few_views_are_rejected():
+    """After association: the issue's phantoms were supported by 4-8 of 36 views (confidence
+    0.36-0.50); the true objects by most of the views that have them in the image."""
+    from phirie_jax.observe.config import ObserveConfig
+    from phirie_jax.observe.stage import _seen_too_little
+
+    config = ObserveConfig()
+    assert "min_views" in _seen_too_little({"views": [0, 1], "confidence": 1.0}, config)
+    assert "min_view_fraction" in _seen_too_little({"views": list(range(6)), "confidence": 0.36}, config)
+    assert _seen_too_little({"views": list(range(30)), "confidence": 0.83}, config) is None
