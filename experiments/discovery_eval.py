@@ -4,6 +4,8 @@ without a scan, masks or candidates, against the synthetic truth.
     python -m experiments.discovery_eval --preset default --seeds 2001 2002 2003 \
         --variants ideal artefacts fitted fitted+artefacts [--gsplat DIR ...] \
         --scene-root /tmp/phirie_scenes --work /tmp/discovery_eval --out experiments/results/discovery_eval.json
+    # real captures (no truth: the supports, clusters, instances and objects auto discovery makes)
+    python -m experiments.discovery_eval --variants --real ../shared/data/captures/snowmiku --out ...
 
 Scenes: the synthetic ``--preset`` of each seed (``--scene-root/<preset><seed>``, synthesized when
 missing); ``fitted``: its Gaussians fitted by the project's own fitter (``phirie synth --fitted``,
@@ -141,6 +143,45 @@ def evaluate_scene(scene_dir: Path, work: Path, metrics, stages: tuple[str, ...]
             "per_object": per_object}
 
 
+def real_capture(scene: Path, work: Path, stages: tuple[str, ...]) -> dict:
+    """``--masks auto`` on a real capture (no truth): the frame, the supports, what was found and kept."""
+    from phirie_jax.pipeline import run_convert
+
+    out = work / "out"
+    if out.exists():
+        shutil.rmtree(out)
+    t0 = time.perf_counter()
+    error = None
+    try:
+        run_convert(scene, out, masks="auto", stages=stages)
+    except Exception as err:  # noqa: BLE001 — recorded, as for a synthetic scene
+        error = f"{type(err).__name__}: {err}"
+    manifest = json.loads((out / "manifest.json").read_text())
+    frame, auto = manifest.get("frame", {}), manifest.get("observe", {}).get("auto", {})
+    instances = {i["id"]: i for i in manifest.get("instances", [])}
+
+    def size(inst):
+        lo, hi = (np.asarray(b) for b in inst["bounds"])
+        return (hi - lo).round(3).tolist()
+
+    return {"scene": str(scene), "error": error, "wall_s": round(time.perf_counter() - t0, 1),
+            "frame": {k: frame.get(k) for k in ("scale", "up_source", "scale_source", "scale_uncertainty")},
+            "frame_support": auto.get("frame_support"), "samples": auto.get("samples"),
+            "supports": auto.get("supports"), "support_planes": auto.get("support_planes"),
+            "clusters": [{k: o.get(k) for k in ("id", "points", "extent_m", "height_m", "views", "looking_views",
+                                                "centroid")} for o in auto.get("objects", [])],
+            "rejected_clusters": [{k: r.get(k) for k in ("points", "height_m", "views", "looking_views", "reason")}
+                                  for r in auto.get("rejected_clusters", []) if r.get("points", 0) >= 40],
+            "instances": [{"id": i["id"], "views": len(i["views"]), "confidence": i["confidence"],
+                           "points": i["num_points"], "size_m": size(i)} for i in instances.values()],
+            "rejected_instances": [r for r in manifest.get("observe", {}).get("rejected_proposals", [])
+                                   if "instance" in r],
+            "objects": [{"id": o["id"], "status": o.get("status"), "candidate": o.get("candidate"),
+                         "reason": o.get("reason"), "failed_checks": o.get("unresolved_checks", [])}
+                        for o in manifest.get("objects", [])],
+            "timings": {k: round(v, 2) for k, v in manifest.get("timings", {}).items() if "." not in k}}
+
+
 def summarize(rows: list[dict]) -> dict:
     total = {k: sum(r[k] for r in rows) for k in ("tp", "fp", "fn", "objects", "accepted", "located", "on_artefact")}
     obs = [r["observation"] for r in rows if "tp" in r["observation"]]
@@ -178,9 +219,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="default")
     parser.add_argument("--seeds", type=int, nargs="+", default=[2001, 2002, 2003])
-    parser.add_argument("--variants", nargs="+", default=["ideal", "artefacts"],
+    parser.add_argument("--variants", nargs="*", default=["ideal", "artefacts"],
                         choices=["ideal", "artefacts", "fitted", "fitted+artefacts"])
     parser.add_argument("--gsplat", type=Path, nargs="*", default=[], help="gsplat-fitted scene folders (gt/ kept)")
+    parser.add_argument("--real", type=Path, nargs="*", default=[],
+                        help="real captures (no truth): what auto discovery finds and keeps")
     parser.add_argument("--stages", nargs="+", default=["observe", "objects"])
     parser.add_argument("--scene-root", type=Path, default=Path("/tmp/phirie_scenes"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/discovery_eval"))
@@ -198,6 +241,11 @@ def main() -> None:
                        for seed in args.seeds]) for variant in args.variants]
     if args.gsplat:
         runs.append(("gsplat", [(path.name, lambda path=path: path) for path in args.gsplat]))
+    if args.real:
+        result["real"] = []
+        for scene in args.real:
+            result["real"].append(real_capture(scene, args.work / f"real_{scene.name}", tuple(args.stages)))
+            print(json.dumps({k: result["real"][-1][k] for k in ("scene", "error", "wall_s", "objects")}), flush=True)
     for name, scenes in runs:
         rows = []
         for seed, make in scenes:
