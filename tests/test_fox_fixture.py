@@ -68,7 +68,7 @@ def test_automatic_masks_say_why_nothing_stands_on_a_support(tmp_path):
     instance, and says so."""
     manifest = run_convert(FOX, tmp_path / "out", QUICK, masks="auto")
     assert manifest["instances"] == [] and manifest["objects"] == []
-    assert manifest["frame"]["scale_source"].startswith("cameras") and manifest["frame"]["scale_uncertainty"] > 1
+    assert manifest["frame"]["scale_source"].startswith("prior: ") and manifest["frame"]["scale_uncertainty"] > 1
     lines = outcome_lines(manifest)
     assert any(line.startswith("no object instance found: no support plane") for line in lines), lines
 

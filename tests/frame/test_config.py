@@ -55,3 +55,36 @@ def test_scene_declaration_and_command_line(tmp_path):
     (tmp_path / "frame.json").write_text(json.dumps({"metres": 2}))
     with pytest.raises(SceneInputError, match="metres: unknown key"):
         scene_frame_config(tmp_path)
+
+
+@pytest.mark.parametrize("options, option", [
+    (dict(marker_size=0.0), "--marker-size"), (dict(marker_size=float("inf")), "--marker-size"),
+    (dict(marker_size=0.05, scale=2.0), "--marker-size"),
+    (dict(marker_size=0.05, marker_dictionary="DICT_9X9_1"), "--marker-dictionary"),
+    (dict(marker_dictionary="DICT_4X4_50"), "--marker-dictionary"),
+])
+def test_marker_options_are_checked(options, option):
+    with pytest.raises(OptionError) as err:
+        FrameConfig(**options).checked()
+    assert str(err.value).startswith(option + ":")
+
+
+def test_marker_size_is_an_option_of_convert_and_observe_and_a_scale_of_its_own(tmp_path, capsys):
+    assert FrameConfig(marker_size=0.05, marker_dictionary="DICT_APRILTAG_36h11").checked().marker_size == 0.05
+    assert merged(FrameConfig(metric=True), FrameConfig(marker_size=0.05)) == FrameConfig(marker_size=0.05)
+    for command in ("convert", "observe"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert "--marker-size" in capsys.readouterr().out
+    out = tmp_path / "out"
+    assert main(["convert", str(tmp_path), "--out", str(out), "--marker-size", "-1"]) == 2
+    assert capsys.readouterr().err.startswith("phirie: error: --marker-size: -1.0") and not out.exists()
+
+
+def test_synth_marker_option_is_checked(tmp_path, capsys):
+    assert main(["synth", str(tmp_path / "s"), "--preset", "tiny", "--marker", "-0.1"]) == 2
+    assert capsys.readouterr().err.startswith("phirie: error: --marker: -0.1")
+    assert main(["synth", str(tmp_path / "s"), "--preset", "tiny", "--marker", "2.0"]) == 2
+    assert "does not fit on the 1.2 × 0.8 m table top" in capsys.readouterr().err
+    assert main(["synth", str(tmp_path / "s"), "--preset", "tiny", "--marker", "0.1", "--fitted"]) == 2
+    assert "--marker: given with --fitted" in capsys.readouterr().err

@@ -20,7 +20,7 @@ from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.scene import load_scene
 from phirie_jax.pipeline import run_convert
 from phirie_jax.render import render
-from tests.frame.test_resolve import UNITS_PER_METRE, WORLD_TO_CAPTURE
+from tests.frame.conftest import UNITS_PER_METRE, WORLD_TO_CAPTURE
 
 pytestmark = pytest.mark.slow
 

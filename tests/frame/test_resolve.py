@@ -6,28 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from phirie_jax.frame import estimate, priors
 from phirie_jax.frame.config import FrameConfig, scene_frame_config
 from phirie_jax.frame.resolve import resolve_frame, scene_in_world, with_known_size
-from phirie_jax.geometry import sim3_matrix, split_sim3
+from phirie_jax.geometry import split_sim3
 from phirie_jax.io.scene import load_scene
 from phirie_jax.render import render
-from phirie_jax.synthetic import synthesize
-from phirie_jax.synthetic.reframe import reframe_scene
-
-UNITS_PER_METRE = 3.7
-TILT = Rotation.from_euler("xyz", [70, -20, 35], degrees=True).as_matrix()
-WORLD_TO_CAPTURE = sim3_matrix(UNITS_PER_METRE, TILT, np.array([0.4, -1.2, 2.0]))
+from tests.frame.conftest import UNITS_PER_METRE, WORLD_TO_CAPTURE
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory):
-    root = tmp_path_factory.mktemp("frame")
-    synthesize(root / "scene", preset="tiny", seed=3)
-    reframe_scene(root / "scene", root / "tilted", WORLD_TO_CAPTURE)
-    return root / "scene", root / "tilted"
+def scenes(tilted_tabletop):
+    return tilted_tabletop
 
 
 def truth_to_world(frame) -> tuple[float, np.ndarray]:
@@ -166,3 +157,17 @@ def test_known_size_observes_again_at_the_corrected_scale(scenes, tmp_path):
     record = next(i for i in manifest["instances"] if i["id"] == 1)
     observed = np.load(tmp_path / "out" / record["points"])["points"]
     assert longest_side(observed) < 0.5                           # metres, not capture units
+
+
+def test_a_given_up_the_cues_refute_is_printed_and_recorded(scenes, tmp_path, capsys):
+    """``--up`` wins, but a frame that is wrong is not silent: the cues' disagreement is a
+    ``phirie: warning: frame:`` line on stderr and is kept in the manifest."""
+    from phirie_jax.pipeline import run_convert
+
+    manifest = run_convert(scenes[1], tmp_path / "out", stages=(), frame=FrameConfig(up="+x"))
+    frame = manifest["frame"]
+    assert frame["up_source"] == "given (--up +x)" and frame["warnings"]
+    assert frame["warnings"][0].startswith("up cues disagree: ")
+    err = capsys.readouterr().err
+    assert f"phirie: warning: frame: {frame['warnings'][0]}" in err
+    assert set(manifest["timings"]) >= {"frame"} and "observe" not in manifest["timings"]
