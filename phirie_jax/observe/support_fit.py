@@ -95,15 +95,16 @@ class Support:
 def frame_support_plane(frame_record: dict | None) -> tuple[np.ndarray, float] | None:
     """The support plane the frame stage found, in the world (metres, +z up): (normal (3,),
     offset) with normal · x = offset. Read from the manifest's ``frame`` record: its ``support``
-    (or ``support_plane``: ``{"normal", "offset"}``, ``{"normal", "point"}`` or ``{"height"}`` for z = height, world),
-    else the plane of its evidence (``evidence.planes``, capture coordinates) that its up came
-    from — the largest within ``FRAME_PLANE_TILT_DEG`` of up once moved into the world. None when
-    the frame has none."""
+    (or ``support_plane``; world: ``{"normal", "height"}`` with normal · x = height, as the frame
+    stage writes it, or ``{"normal", "offset"}``, or ``{"normal", "point"}``),
+    else (a frame recorded before it had that field) the plane of its evidence
+    (``evidence.planes``, capture coordinates) that its up came from — the largest within
+    ``FRAME_PLANE_TILT_DEG`` of up once moved into the world. None when the frame has none."""
     frame_record = frame_record or {}
-    support = frame_record.get("support", frame_record.get("support_plane"))
+    key = next((k for k in ("support", "support_plane") if k in frame_record), None)
     try:
-        if isinstance(support, dict):
-            return _world_plane(support)
+        if key is not None:  # the frame says which plane is the support (None: it found none)
+            return _world_plane(frame_record[key]) if isinstance(frame_record[key], dict) else None
         if str(frame_record.get("up_source", "")).startswith("support plane"):
             return _evidence_plane(frame_record)
     except (TypeError, ValueError, KeyError, IndexError):
@@ -117,12 +118,10 @@ def _world_plane(support: dict) -> tuple[np.ndarray, float] | None:
         return None
     length = float(np.linalg.norm(normal))
     normal = normal / length
-    if "offset" in support:
-        offset = float(support["offset"]) / length
+    if "offset" in support or "height" in support:  # normal · x = offset (the frame calls it height)
+        offset = float(support.get("offset", support.get("height"))) / length
     elif "point" in support:
         offset = float(normal @ np.asarray(support["point"], np.float64).reshape(3))
-    elif "height" in support:
-        offset = float(support["height"]) * float(normal[2])
     else:
         return None
     if not np.isfinite(offset):

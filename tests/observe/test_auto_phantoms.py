@@ -106,6 +106,11 @@ def test_frame_support_plane_from_the_frame_record():
     assert frame_support_plane(None) is None and frame_support_plane({"support": "x"}) is None
     normal, offset = frame_support_plane({"support": {"normal": [0, 0, -1], "point": [0, 0, 0.4]}})
     np.testing.assert_allclose(normal, [0, 0, 1]) and np.testing.assert_allclose(offset, 0.4)
+    # as the frame stage records it (SupportPlane.record: normal · x = height)
+    normal, offset = frame_support_plane({"support": {"normal": [0.0, 0.6, 0.8], "height": 0.5,
+                                                      "point": [0.0, 0.3, 0.4], "source": "splat surface"}})
+    np.testing.assert_allclose(normal, [0, 0.6, 0.8]) and np.testing.assert_allclose(offset, 0.5)
+    assert frame_support_plane({"support": None, "up_source": "given (--up +z)"}) is None
     # the evidence plane the up came from, moved into the world by capture_to_world (x_w = 2 R x_c)
     rot = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])   # capture +y → world +z
     c2w = np.eye(4)
