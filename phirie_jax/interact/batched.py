@@ -4,7 +4,9 @@
 once and holds N copies of its state. By default the objects collide through one convex hull
 each (``collision="hull"``, ``phirie_jax.interact.mjx_model``: MJX compiles one function per
 distinct part pair); ``collision="parts"`` keeps the exported parts, as the single environment. ``step`` advances every world in one jitted,
-vmapped program; ``render`` draws worlds × cameras with a ``WorldRenderer``.
+vmapped program; ``render`` draws worlds × cameras with a ``WorldRenderer``. The worlds start
+from the environment's reset state (its robot at home). ``backend="warp"`` steps the same
+worlds in MuJoCo Warp instead, with the exact model (``batched_warp``).
 
 ``WorldRenderer`` renders many worlds of one environment from the same cameras: the
 Gaussians that never move (the background) are projected, coloured and binned once per camera
@@ -65,20 +67,72 @@ def _advance(model, data, steps: int, mesh: BatchMesh):
 
 
 @jax.jit
-def _placements(xpos, xquat, body_ids, inverse_t0_pose0):
-    """(N, K, 4, 4) S_i(t) for every world from body positions (N, nbody, 3) and quats."""
+def _body_poses(xpos, xquat, body_ids):
+    """(N, K, 4, 4) T_i(t) of bodies ``body_ids`` (K,) from positions (N, nbody, 3) and wxyz quats."""
     rot = quat_to_rotmat(xquat[:, body_ids])                       # (N, K, 3, 3)
     top = jnp.concatenate([rot, xpos[:, body_ids, :, None]], axis=-1)
     bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], top.dtype), top.shape[:-2] + (1, 4))
-    return jnp.concatenate([top, bottom], axis=-2) @ inverse_t0_pose0
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+@jax.jit
+def _placements(xpos, xquat, body_ids, inverse_t0_pose0):
+    """(N, K, 4, 4) S_i(t) for every world from body positions (N, nbody, 3) and quats."""
+    return _body_poses(xpos, xquat, body_ids) @ inverse_t0_pose0
+
+
+def initial_data(model, robot=None):
+    """The state batched worlds start from (``mujoco.MjData``): the model's reset state, the robot
+    (``robot.setup.Robot``) at home with its servos holding there, forward done (``Environment.reset``)."""
+    import mujoco
+
+    data = mujoco.MjData(model)
+    if robot is not None:
+        robot.set_home(model, data)
+    mujoco.mj_forward(model, data)
+    return data
+
+
+def batched_model(env: Environment, collision: CollisionModel):
+    """The ``mujoco.MjModel`` the worlds run: the environment's own (``"parts"``), or with each
+    multi-part object colliding through one convex hull (``"hull"``, ``mjx_model``)."""
+    if collision not in ("hull", "parts"):
+        raise ValueError(f"collision {collision!r} (expected 'hull' or 'parts')")
+    merged = [o.body for o in env.objects if collision == "hull" and multi_part(env.model, o.body_id)]
+    if merged:
+        return hull_collision_spec(_source_spec(env), env.model, merged).compile()
+    return env.model
+
+
+def inverse_t0_pose0(env: Environment, data) -> jax.Array:
+    """(K, 4, 4) T_i(0)⁻¹ S_i(0) of the environment's bodies, T_i(0) from ``data``: the state the
+    worlds start from (not the environment's current state, which may have been stepped)."""
+    if not env.objects:
+        return jnp.zeros((0, 4, 4), jnp.float32)
+    ids = [o.body_id for o in env.objects]
+    pose0 = np.stack([o.pose0 for o in env.objects])
+    return jnp.asarray(np.linalg.inv(body_matrix(data.xpos[ids], data.xquat[ids])) @ pose0, jnp.float32)
 
 
 class BatchedEnvironment:
     """N copies of one ``Environment`` on MJX (module docstring), spread over ``devices``
-    (``kernels.sharding.resolve_devices``: None, every device; a count; or jax devices)."""
+    (``kernels.sharding.resolve_devices``: None, every device; a count; or jax devices).
 
-    def __init__(self, env: Environment, num_worlds: int, collision: CollisionModel = "hull", devices=None):
-        import mujoco
+    ``backend="warp"`` gives the same API on MuJoCo Warp (``batched_warp.WarpBatchedEnvironment``:
+    the exact model, ``collision`` "parts" by default); "mjx" (default) is the pure-JAX backend,
+    ``collision`` "hull" by default."""
+
+    def __new__(cls, *args, backend: str = "mjx", **kwargs):
+        if backend not in ("mjx", "warp"):
+            raise ValueError(f"backend {backend!r} (expected 'mjx' or 'warp')")
+        if backend == "warp" and cls is BatchedEnvironment:
+            from phirie_jax.interact.batched_warp import WarpBatchedEnvironment
+
+            return super().__new__(WarpBatchedEnvironment)
+        return super().__new__(cls)
+
+    def __init__(self, env: Environment, num_worlds: int, collision: CollisionModel | None = None, devices=None,
+                 *, backend: str = "mjx"):
         from mujoco import mjx
 
         self.env = env
@@ -87,29 +141,16 @@ class BatchedEnvironment:
             raise ValueError(f"num_worlds {num_worlds} (expected at least 1)")
         self.mesh = BatchMesh.over(devices)
         self.padded_worlds = self.mesh.padded(self.num_worlds)  # the worlds stepped: a multiple of the devices
-        self.collision = collision
-        if collision not in ("hull", "parts"):
-            raise ValueError(f"collision {collision!r} (expected 'hull' or 'parts')")
-        merged = [o.body for o in env.objects if collision == "hull" and multi_part(env.model, o.body_id)]
-        if merged:
-            self.mj_model = hull_collision_spec(_source_spec(env), env.model, merged).compile()
-        else:
-            self.mj_model = env.model
+        self.collision = collision or "hull"
+        self.mj_model = batched_model(env, self.collision)
         self.model = self.mesh.put_replicated(mjx.put_model(self.mj_model))
-        data = mujoco.MjData(self.mj_model)
-        mujoco.mj_forward(self.mj_model, data)
+        data = initial_data(self.mj_model, env.robot)
         one = jax.device_get(mjx.put_data(self.mj_model, data))
-        self._data = self.mesh.put_rows(jax.tree.map(
+        self._data0 = self.mesh.put_rows(jax.tree.map(
             lambda x: np.broadcast_to(x, (self.padded_worlds,) + np.shape(x)), one))
+        self._data = self._data0
         self.body_ids = jnp.asarray([o.body_id for o in env.objects], jnp.int32)
-        pose0 = np.stack([o.pose0 for o in env.objects]) if env.objects else np.zeros((0, 4, 4))
-        # T_i(0) from the model's initial state, as the worlds start (not the environment's
-        # current state, which may have been stepped)
-        t0 = (body_matrix(data.xpos[[o.body_id for o in env.objects]],
-                          data.xquat[[o.body_id for o in env.objects]])
-              if env.objects else np.zeros((0, 4, 4)))
-        self.inverse_t0_pose0 = jnp.asarray(np.linalg.inv(t0) @ pose0 if env.objects else pose0,
-                                            jnp.float32)
+        self.inverse_t0_pose0 = inverse_t0_pose0(env, data)
         self._renderer: WorldRenderer | None = None
 
     @property
@@ -132,8 +173,20 @@ class BatchedEnvironment:
         """Set the state of the N worlds (the pad worlds become copies of world 0)."""
         self._data = self.mesh.put_rows(pad_rows(data, self.padded_worlds))
 
-    def step(self, steps: int = 1) -> None:
-        """Advance every world by ``steps`` simulator steps (one compiled program per count)."""
+    def reset(self) -> None:
+        """Every world back to the initial state (``initial_data``)."""
+        self._data = self._data0
+
+    def step(self, steps: int = 1, ctrl=None) -> None:
+        """Advance every world by ``steps`` simulator steps (one compiled program per count),
+        holding ``ctrl`` (N, nu), the actuators' controls of each world, when given."""
+        if ctrl is not None:
+            nu = self._data.ctrl.shape[1]
+            if tuple(ctrl.shape) != (self.num_worlds, nu):
+                raise ValueError(f"step: ctrl of shape {tuple(ctrl.shape)} (expected ({self.num_worlds}, {nu}): "
+                                 "worlds × actuators)")
+            ctrl = pad_rows(jnp.asarray(ctrl, self._data.ctrl.dtype), self.padded_worlds)
+            self._data = self._data.replace(ctrl=self.mesh.put_rows(ctrl))
         self._data = _advance(self.model, self._data, int(steps), self.mesh)
 
     def set_velocities(self, qvel) -> None:
@@ -143,6 +196,11 @@ class BatchedEnvironment:
             raise ValueError(f"set_velocities: qvel of shape {qvel.shape} "
                              f"(expected ({self.num_worlds}, {self._data.qvel.shape[1]}): worlds × nv)")
         self._data = self._data.replace(qvel=self.mesh.put_rows(pad_rows(qvel, self.padded_worlds)))
+
+    def body_poses(self) -> jax.Array:
+        """(N, K, 4, 4) T_i(t): world pose of every object's (and robot link's) body in every world."""
+        return _body_poses(self._data.xpos.astype(jnp.float32), self._data.xquat.astype(jnp.float32),
+                           self.body_ids)[: self.num_worlds]
 
     def placements(self) -> jax.Array:
         """(N, K, 4, 4) S_i(t) of every object in every world."""
