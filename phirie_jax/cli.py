@@ -17,6 +17,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from phirie_jax.cluster import ScenesFailed
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import ConfigValueError, OptionError, SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig
@@ -317,6 +318,88 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         print(f"report: {out / manifest['report']['path']}")
 
 
+def convert_many(scenes: Annotated[tuple[Path, ...], tyro.conf.Positional], out: Path, address: str | None = None,
+                 workers: int | None = None, cpus_per_scene: int = 1, gpus_per_scene: float | None = None,
+                 resources: tuple[str, ...] = (), retries: int = 2, masks: str | None = None,
+                 frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
+                 observe_width: int | None = None, config: ConvertConfig = ConvertConfig(),
+                 allow_outside_paths: bool = False) -> None:
+    """Convert many scenes, each a Ray task writing OUT/<scene name>/ (as `phirie convert`); a
+    summary table and OUT/summary.json at the end. A scene that fails is recorded with its reason
+    and the others go on; a task whose worker dies is retried; a re-run skips the scenes already
+    converted from the same inputs with the same options. Needs Ray: pip install 'phirie_jax[cluster]'.
+
+    Args:
+        scenes: scene folders (their names name the output folders; alike names are told apart by
+            their parent folders).
+        out: the folder that holds one output folder per scene, and summary.json.
+        address: a running Ray cluster: auto (the one on this machine or RAY_ADDRESS), HOST:PORT or
+            ray://HOST:PORT; default: a local Ray instance started for this run.
+        workers: CPUs of the local instance, i.e. scenes at once (default: every core).
+        cpus_per_scene: CPUs each scene's task holds (its collision's worker processes).
+        gpus_per_scene: GPUs each scene's task holds (default: 1 when the cluster has a GPU, else 0;
+            a fraction shares a GPU).
+        resources: NAME=AMOUNT, a custom Ray resource each task holds (repeatable).
+        retries: attempts after the first, for a task whose worker died or that failed transiently.
+        masks: mask source for observation: "files", "auto" or an external segmenter's folder.
+        frame: the captures' up and scale, when the same for all (else each scene's frame.json or
+            estimate).
+        observe_width: observation's working width in pixels (as --config.observe.working-width).
+        config: every stage's parameters (defaults: the paper's numbers).
+        allow_outside_paths: accept cameras that name images outside the scene folder.
+    """
+    from phirie_jax.cluster.driver import SUMMARY, Placement, import_ray
+    from phirie_jax.cluster.driver import convert_many as run_many
+    from phirie_jax.cluster.scene_task import SceneJob
+    from phirie_jax.cluster.table import ended_line, print_summary
+
+    import_ray()
+    check_option("--workers", workers, AT_LEAST_ONE)
+    check_option("--cpus-per-scene", cpus_per_scene, AT_LEAST_ONE)
+    check_option("--retries", retries, NON_NEGATIVE)
+    if gpus_per_scene is not None and not gpus_per_scene >= 0:
+        raise OptionError("--gpus-per-scene", "expected >= 0", str(gpus_per_scene))
+    if workers is not None and address not in (None, "local"):
+        raise OptionError("--workers", "sets the CPUs of a local Ray instance (expected no --address; a running "
+                          "cluster has its own)")
+    config = dataclasses.replace(config, observe=_with_observe_width(config.observe, observe_width))
+    placement = Placement(address=None if address == "local" else address, workers=workers, cpus=cpus_per_scene,
+                          gpus=gpus_per_scene, resources=_resource_amounts(resources), retries=retries)
+    job = SceneJob(name="", scene=Path(), out=Path(), config=config, masks=masks, frame=frame,
+                   allow_outside_paths=allow_outside_paths)
+
+    def started(meta: dict) -> None:
+        cluster = meta["cluster"]
+        where = "a local Ray instance" if meta["address"] == "local" else f"the Ray cluster at {meta['address']}"
+        print(f"phirie: {len(scenes)} scenes on {where} ({cluster.get('CPU', 0):g} CPUs, {cluster.get('GPU', 0):g} "
+              f"GPUs; each scene {meta['task']['num_cpus']:g} CPU, {meta['task']['num_gpus']:g} GPU)", flush=True)
+
+    summary = run_many(scenes, out, job, placement, on_start=started,
+                       on_end=lambda record: print(ended_line(record), flush=True))
+    print_summary(summary)
+    print(f"summary: {out / SUMMARY}")
+    failed = summary["counts"].get("failed", 0)
+    if failed:
+        raise ScenesFailed(f"{failed} of {len(scenes)} scenes failed (reasons in {out / SUMMARY})")
+
+
+def _resource_amounts(given: tuple[str, ...]) -> dict[str, float]:
+    """``--resources NAME=AMOUNT`` values as {name: amount}; ``OptionError`` for a malformed one."""
+    import math
+
+    amounts = {}
+    for text in given:
+        name, sep, amount = text.partition("=")
+        try:
+            value = float(amount)
+        except ValueError:
+            value = math.nan
+        if not sep or not name or not (math.isfinite(value) and value > 0):
+            raise OptionError("--resources", f"{text!r} (expected NAME=AMOUNT with a positive amount, e.g. bigmem=1)")
+        amounts[name] = value
+    return amounts
+
+
 def _object_masses(given: tuple[str, ...]) -> tuple[tuple[int, float], ...]:
     """``--mass ID=KG`` values as (id, kg) pairs; ``OptionError`` for a malformed one."""
     import math
@@ -575,7 +658,7 @@ def view(out_dir: Annotated[Path, tyro.conf.Positional],
 
 
 COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
-            "convert": convert, "droptest": droptest, "simulate": simulate, "demo": demo, "view": view}
+            "convert": convert, "convert-many": convert_many, "droptest": droptest, "simulate": simulate, "demo": demo, "view": view}
 
 
 def _options_checked(command):
@@ -626,6 +709,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except StageError as err:
         print(f"phirie: error: {err} (recorded in the output folder's manifest.json)", file=sys.stderr)
+        return 1
+    except ScenesFailed as err:
+        print(f"phirie: error: {err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("phirie: interrupted", file=sys.stderr)

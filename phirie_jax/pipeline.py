@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax import layout
+from phirie_jax import layout, provenance
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.physics.config import PhysicsConfig
@@ -309,13 +309,14 @@ def _clean(out_dir: Path) -> None:
         remove_temporaries(folder)
 
 
-def _start(scene: SceneInput, out_dir: Path, selected: list[str]) -> None:
-    """The output folder's manifest with the scene it converts and the stages this run will run;
-    a stage after the first of them that this run leaves alone was made from what this run
-    replaces: outdated."""
+def _start(scene: SceneInput, out_dir: Path, selected: list[str], inputs: dict) -> None:
+    """The output folder's manifest with the scene it converts, what it is made from (``inputs``,
+    ``provenance.inputs_record``) and the stages this run will run; a stage after the first of
+    them that this run leaves alone was made from what this run replaces: outdated."""
     manifest = Manifest.load_or_create(out_dir)
     manifest.set("scene", {"path": str(scene.root), "layout": scene.layout,
                            "gaussians": str(scene.gaussians_path), "cameras": len(scene.cameras)})
+    manifest.set(provenance.SECTION, inputs)
     manifest.data.pop("failed_stage", None)
     status = manifest.stage_status()
     first = min(STAGE_NAMES.index(n) for n in selected)
@@ -347,6 +348,17 @@ def _inputs(scene: SceneInput, masks: str | Path | None, config: ConvertConfig) 
     return named
 
 
+def conversion_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
+                      stages: tuple[str, ...] | None, frame: FrameConfig) -> dict:
+    """The ``inputs`` record of this conversion: its input files' and options' hashes. The
+    collision's worker count decides how fast, not what, so it is left out of the options."""
+    options = {"config": dataclasses.replace(config, physics=dataclasses.replace(config.physics, workers=0)),
+               "frame": frame, "stages": None if stages is None else sorted(stages),
+               "masks": masks if masks in (None, "auto", "files") else "folder"}
+    extra = [masks if masks not in (None, "auto", "files") else None, config.background.targets.external]
+    return provenance.inputs_record(scene, options, [Path(p) for p in extra if p is not None])
+
+
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
                 masks: str | Path | None = None, gaussians: str | Path | None = None,
                 surface: str | Path | None = None, frame: FrameConfig = FrameConfig(), progress=None,
@@ -367,12 +379,13 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
         run = Run(scene, out_dir, config, merged(scene_frame_config(scene.root), frame), masks)
         check_inputs(scene, config, masks, stages, run.frame_config)
         check_inputs_outside(out_dir, _inputs(scene, masks, config))
+        inputs = conversion_inputs(scene, config, masks, stages, frame)
         created = _missing_root(out_dir)
         with locked(out_dir):
             check_output_folder(out_dir, scene_root)   # as this run holds it
             _clean(out_dir)
             selected = [n for n in STAGES if stages is None or n == "frame" or n in stages]
-            _start(scene, run.out_dir, selected)
+            _start(scene, run.out_dir, selected, inputs)
             for name in selected:
                 if name == "background" and "physics" in selected:
                     continue   # ran beside the physics stage's collision

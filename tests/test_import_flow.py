@@ -17,7 +17,7 @@ LAYERS = (
     ("phirie_jax.errors", 1), ("phirie_jax.native", 1), ("phirie_jax.types", 1), ("phirie_jax.geometry", 1), ("phirie_jax.layout", 1),
     ("phirie_jax.ranges", 1), ("phirie_jax.progress", 1),
     ("phirie_jax.io", 2),
-    ("phirie_jax.manifest", 3), ("phirie_jax.render", 3),
+    ("phirie_jax.manifest", 3), ("phirie_jax.render", 3), ("phirie_jax.provenance", 3),
     ("phirie_jax.frame", 4), ("phirie_jax.synthetic", 4), ("phirie_jax.synthetic.fitted", 4),
     ("phirie_jax.observe", 5),
     ("phirie_jax.construct.objects", 6),
@@ -26,7 +26,7 @@ LAYERS = (
     ("phirie_jax.interact", 9),
     ("phirie_jax.pipeline", 10), ("phirie_jax.report.config", 10),
     ("phirie_jax.info", 11), ("phirie_jax.demo", 11), ("phirie_jax.cli", 11), ("phirie_jax.view", 11),
-    ("phirie_jax.report", 11),
+    ("phirie_jax.report", 11), ("phirie_jax.cluster", 11),
 )
 PACKAGE_ROOTS = ("phirie_jax", "kernels")
 CONTAINERS = ("phirie_jax", "phirie_jax.construct", "phirie_jax.frame")  # packages that only group others: they import nothing
