@@ -35,17 +35,27 @@ SEED = 0
 
 @dataclasses.dataclass(frozen=True)
 class SupportPlane:
-    """The plane things rest on, in the world frame: normal · x = height (metres), normal ≈ +z."""
+    """The plane things rest on, in the world frame (metres): normal · x = offset, normal ≈ +z
+    (a soft support's fitted plane may lean a few degrees), ``point`` on it where its points are."""
 
     normal: np.ndarray   # (3,) unit, world
-    height: float        # metres along the normal
     point: np.ndarray    # (3,) world: the centroid of the points it was fitted to
     source: str          # "opaque Gaussian centres" | "splat surface" | "markers"
     inliers: int
 
+    @property
+    def offset(self) -> float:
+        return float(self.normal @ self.point)
+
+    @property
+    def height(self) -> float:
+        """The support's z (metres) at ``point``."""
+        return float(self.point[2])
+
     def record(self) -> dict:
-        return {"normal": self.normal.round(8).tolist(), "height": round(float(self.height), 8),
-                "point": self.point.round(8).tolist(), "source": self.source, "inliers": self.inliers}
+        return {"normal": self.normal.round(8).tolist(), "offset": round(self.offset, 8),
+                "height": round(self.height, 8), "point": self.point.round(8).tolist(), "source": self.source,
+                "inliers": self.inliers}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +92,7 @@ class SceneFrame:
         normal = rotation @ plane.normal
         point = scale * rotation @ plane.centroid + translation
         words = {"centres": "opaque Gaussian centres", "surface": "splat surface", "markers": "markers"}
-        return SupportPlane(normal, float(normal @ point), point, words.get(plane.source, plane.source), plane.inliers)
+        return SupportPlane(normal, point, words.get(plane.source, plane.source), plane.inliers)
 
     def record(self) -> dict:
         """The manifest's ``frame`` section."""

@@ -69,7 +69,7 @@ def test_the_support_plane_is_the_table_top_in_the_world(scenes):
     shift = split_sim3(frame.capture_to_world)[1] @ WORLD_TO_CAPTURE[:3, 3] / UNITS_PER_METRE
     assert support.height == pytest.approx(0.75 + shift[2], abs=0.01)
     record = frame.record()["support"]
-    assert set(record) >= {"normal", "height", "point", "source", "inliers"} and record["height"] == pytest.approx(
+    assert set(record) >= {"normal", "offset", "height", "point", "source", "inliers"} and record["height"] == pytest.approx(
         support.height)
     # rescaled (--known-size) the support stays on the same Gaussians: its height scales with the frame
     doubled = frame.rescaled(2 * frame.scale, "given", 1.0)
