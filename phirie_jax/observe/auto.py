@@ -17,7 +17,8 @@
    the plane threshold of the support (not upward-facing, next to the cluster) are given back
    to it.
 4. Per-view masks: each pixel's first hit on the surface takes the label of the nearest
-   sample (within two sample voxels): projection of each cluster with occlusion.
+   sample (within two sample voxels, or twice the samples' spacing where that is wider):
+   projection of each cluster with occlusion.
 """
 
 from __future__ import annotations
@@ -214,9 +215,20 @@ def _reclaim_base(points, normals, labels, on_support, up, config: AutoMaskConfi
     labels[strip[found]] = labels[owned[nearest[found]]]
 
 
+def label_radius(points: np.ndarray, sample_voxel: float) -> float:
+    """How far a pixel's first hit may be from the sample whose label it takes: two sample voxels, or
+    twice the samples' median spacing where the rays sampled the surface more sparsely (small
+    images: a pixel is wider than a voxel at the cameras' distance)."""
+    if len(points) < 2:
+        return 2 * sample_voxel
+    spacing, _ = cKDTree(points).query(points, k=2)
+    return max(2 * sample_voxel, 2 * float(np.median(spacing[:, 1])))
+
+
 def auto_masks(raycaster: Raycaster, cameras: tuple[Camera, ...], seg: AutoSegmentation, sample_voxel: float):
-    """Per-view masks: each pixel's first hit takes the label of the nearest sample (≤ 2 voxels away)."""
+    """Per-view masks: each pixel's first hit takes the label of the nearest sample (``label_radius``)."""
     tree = cKDTree(seg.points)
+    radius = label_radius(seg.points, sample_voxel)
     for view, camera in enumerate(cameras):
         problem = camera_problem(camera)
         if problem:
@@ -225,7 +237,7 @@ def auto_masks(raycaster: Raycaster, cameras: tuple[Camera, ...], seg: AutoSegme
         hits, _, _ = raycaster.cast_camera(camera)
         labels = np.zeros(len(hits.depth), np.int64)
         hit = np.flatnonzero(hits.hit)
-        dist, nearest = tree.query(hits.points[hit], distance_upper_bound=2 * sample_voxel)
+        dist, nearest = tree.query(hits.points[hit], distance_upper_bound=radius)
         found = np.isfinite(dist)
         labels[hit[found]] = seg.labels[nearest[found]]
         labels = labels.reshape(camera.height, camera.width)
