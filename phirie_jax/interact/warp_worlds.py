@@ -222,10 +222,11 @@ class WarpWorlds:
         for p in self.parts:
             self._repeat(p, ("step",), int(steps), lambda p=p: mjw.step(p.model, p.data), GRAPH_STEPS)
 
-    def play(self, ctrl, substeps: int) -> None:
+    def play(self, ctrl, substeps: int, ticks: int | None = None) -> None:
         """Every world through a control sequence ``ctrl`` (T, N, nu): tick t's controls held for
-        ``substeps`` steps. The sequence is copied to the devices once; each tick a kernel reads
-        its row there (module docstring)."""
+        ``substeps`` steps; only its first ``ticks`` when given (a warm-up that compiles and
+        captures). The sequence is copied to the devices once; each tick a kernel reads its row
+        there (module docstring)."""
         import mujoco_warp as mjw
         import warp as wp
 
@@ -252,7 +253,8 @@ class WarpWorlds:
                     mjw.step(p.model, p.data)
                 wp.launch(next_tick, dim=1, inputs=[p.tick])
 
-            self._repeat(p, ("tick", int(substeps)), ctrl.shape[0], one_tick, GRAPH_TICKS)
+            self._repeat(p, ("tick", int(substeps)), ctrl.shape[0] if ticks is None else min(ticks, ctrl.shape[0]),
+                         one_tick, GRAPH_TICKS)
 
     @staticmethod
     def _repeat(part: _Part, key: tuple, count: int, one, length: int) -> None:
