@@ -240,6 +240,7 @@ def evaluate_object(env: Environment, host: Host, object_id: int, goal, episodes
 
 def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, objects: list[int] | None = None,
              backend: str = "mjx", workers: int = 1) -> dict:
+    warp = _warp_versions() if backend == "warp" else {}
     env = Environment.load(out_dir, robot=ROBOT)
     candidates = [o.id for o in env.objects if o.id is not None and o.id in env.robot.placement.reachable
                   and script.grasp_for(env, o.id).fits and (objects is None or o.id in objects)]
@@ -273,13 +274,20 @@ def evaluate(out_dir: Path, episodes: int, placement_range: float, seed: int, ob
             "device": jax.devices()[0].platform, "device_kind": jax.devices()[0].device_kind,
             "host_cores": os.cpu_count(), "load_average_at_end": list(os.getloadavg()),
             "jax": jax.__version__, "mujoco": mujoco.__version__, "machine": platform.platform(),
-            **(_warp_versions() if b == "warp" else {}), "robot": env.robot.record()}
+            **warp, "robot": env.robot.record()}
 
 
 def _warp_versions() -> dict:
+    """Warp's versions and how many compiled modules its kernel cache held (a warm cache makes the
+    warm-up load kernels, not compile them)."""
     from importlib.metadata import version
 
-    return {"warp": version("warp-lang"), "mujoco_warp": version("mujoco-warp")}
+    import warp as wp
+
+    wp.init()
+    cache = Path(wp.config.kernel_cache_dir)
+    return {"warp": version("warp-lang"), "mujoco_warp": version("mujoco-warp"),
+            "warp_cached_modules_at_start": len(list(cache.iterdir())) if cache.is_dir() else 0}
 
 
 def main(argv=None) -> None:

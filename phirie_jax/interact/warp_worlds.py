@@ -73,19 +73,20 @@ def _bucket(n: float) -> int:
 
 
 def capacity(model, data: mujoco.MjData, grasp: bool = False) -> tuple[int, int]:
-    """(contacts, constraint rows) to allocate per world: ``CONTACT_MARGIN`` × the contacts MuJoCo C
-    finds after ``SETTLE_STEPS`` from ``data`` (plus ``GRASP_CONTACTS`` when a robot grasps), and
-    for each the rows of the widest contact the model can make (pyramidal cones: 2 (condim − 1))
-    plus one per limited joint and six per equality."""
+    """(contacts, constraint rows) to allocate per world: ``CONTACT_MARGIN`` × what MuJoCo C holds
+    after ``SETTLE_STEPS`` from ``data`` (its contacts; its rows, limits and equalities included),
+    plus, when a robot grasps, ``GRASP_CONTACTS`` contacts of the widest kind the model makes
+    (pyramidal cones: 2 (condim − 1) rows each)."""
     settled = mujoco.MjData(model)
     for name in STATE:
         getattr(settled, name)[:] = getattr(data, name)
     mujoco.mj_step(model, settled, nstep=SETTLE_STEPS)
-    contacts = _bucket(max(MIN_CONTACTS, CONTACT_MARGIN * max(settled.ncon, data.ncon) + GRASP_CONTACTS * grasp))
     colliding = (model.geom_contype | model.geom_conaffinity) > 0
     condim = int(model.geom_condim[colliding].max()) if colliding.any() else 1
-    rows = condim if model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(1, 2 * (condim - 1))
-    return contacts, _bucket(rows * contacts + int(model.jnt_limited.sum()) + 6 * model.neq)
+    widest = condim if model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else max(1, 2 * (condim - 1))
+    contacts = CONTACT_MARGIN * max(settled.ncon, data.ncon) + GRASP_CONTACTS * grasp
+    rows = CONTACT_MARGIN * max(settled.nefc, data.nefc) + GRASP_CONTACTS * widest * grasp
+    return _bucket(max(MIN_CONTACTS, contacts)), _bucket(max(MIN_CONTACTS, rows))
 
 
 @dataclasses.dataclass
