@@ -107,11 +107,14 @@ def looking_views(raycaster: Raycaster | None, cameras: list[Camera], centre: np
 
 
 def segment(samples: Samples, up: np.ndarray, config: AutoMaskConfig, cameras: list[Camera] | None = None,
-            raycaster: Raycaster | None = None, seeds: tuple = ()) -> AutoSegmentation:
+            raycaster: Raycaster | None = None, seeds: tuple = (), scale_uncertainty: float = 1.0
+            ) -> AutoSegmentation:
     """Supports under the scene's ``up`` (3,) (``seeds``: (normal, offset) planes the frame found)
     and the object clusters standing on them; see the module docstring. ``cameras``: the cameras
     ``samples`` were taken with (their views count clusters' viewers; None: no view filter);
-    ``raycaster``: the surface, to tell which cameras have a cluster hidden."""
+    ``raycaster``: the surface, to tell which cameras have a cluster hidden. ``scale_uncertainty``:
+    the frame's (multiplicative) — a cluster is furniture only when it is larger than
+    ``max_object_extent`` at every scale the frame allows."""
     points, normals = samples.points, samples.normals
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     supports, planes = find_supports(points, up, config, config.sample_voxel, seeds)
@@ -152,9 +155,10 @@ def segment(samples: Samples, up: np.ndarray, config: AutoMaskConfig, cameras: l
                 if len(members) >= 3:  # smaller specks are not worth a record
                     rejected.append({**info, "reason": f"{len(members)} samples (< {config.min_cluster_points})"})
                 continue
-            if extent > config.max_object_extent:
+            if extent > config.max_object_extent * scale_uncertainty:
                 rejected.append({**info, "reason": f"extent {extent:.2f} m > {config.max_object_extent} m "
-                                 "(furniture or structure)"})
+                                 + (f"× the frame's scale uncertainty {scale_uncertainty:.2f} "
+                                    if scale_uncertainty > 1 else "") + "(furniture or structure)"})
                 continue
             if top < config.min_object_height:
                 rejected.append({**info, "reason": f"top {top:.3f} m above the support (< "

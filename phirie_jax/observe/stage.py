@@ -175,8 +175,10 @@ def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
         cams = [c for c in scene.cameras if camera_problem(c) is None]
         samples = auto_mod.observed_samples(raycaster, cams, config.auto.sample_stride, config.auto.sample_voxel)
         seed = frame_support_plane(frame_record)
+        uncertainty = float((frame_record or {}).get("scale_uncertainty") or 1.0)
         seg = auto_mod.segment(samples, np.array([0.0, 0.0, 1.0]) if up is None else up, config.auto, cams,
-                               raycaster, seeds=() if seed is None else (seed,))
+                               raycaster, seeds=() if seed is None else (seed,),
+                               scale_uncertainty=max(1.0, uncertainty))
         record["auto"] = {"samples": len(samples.points), "up": seg.up.round(6).tolist(),
                           "frame_support": None if seed is None else {"normal": seed[0].round(6).tolist(),
                                                                       "offset": round(seed[1], 6)},

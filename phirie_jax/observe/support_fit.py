@@ -13,7 +13,8 @@ support is found from the samples' *positions*:
    refitted by least squares on them (twice) and kept when it covers ``min_support_area``;
    its samples leave the pool; repeat. A plane whose samples lie mostly over an earlier
    support's footprint within ``max_object_height`` of it is not a support (a fold of a soft
-   support, the flat top of what stands on it); a table over the floor is farther apart.
+   support, the flat top of what stands on it), nor is any plane within ``max_object_height``
+   of the frame's support; a table over the floor is farther apart.
 3. Relief (soft supports: a duvet, a cloth): the support's offset from its plane on a grid of
    ``relief_cell`` — the densest layer of the samples within ``support_relief`` of the plane in
    each cell (the support's own surface, not the sides of what stands on it or of its edge),
@@ -250,11 +251,14 @@ def _support(points: np.ndarray, near: np.ndarray, normal: np.ndarray, offset: f
 
 def _stacked(inliers: np.ndarray, normal: np.ndarray, offset: float, supports: list[Support],
              max_height: float) -> int | None:
-    """The earlier support whose footprint holds most of a plane's inliers (M, 3) and whose
-    plane lies within ``max_height`` of it (a layer of its relief, or the top of what stands on
-    it: a soft duvet's folds, a big object's flat top), else None."""
+    """The earlier support this plane (inliers (M, 3)) is a level of, else None: one whose plane
+    lies within ``max_height`` of it and whose footprint holds most of its inliers (a layer of
+    its relief, or the top of what stands on it: a soft duvet's folds, a big object's flat top),
+    or the frame's support within ``max_height`` wherever the plane lies (the frame found the one
+    support; a flat lap or shelf of what stands at its edge is not another)."""
     for k, support in enumerate(supports):
-        if abs(offset - support.offset) < max_height and support.covers(inliers).mean() >= STACKED_SHARE:
+        if abs(offset - support.offset) < max_height and (
+                support.source == "frame" or support.covers(inliers).mean() >= STACKED_SHARE):
             return k
     return None
 
@@ -296,8 +300,9 @@ def find_supports(points: np.ndarray, up: np.ndarray, config: AutoMaskConfig, sa
         over = _stacked(points[np.abs(points @ normal - offset) < thr], normal, offset, supports,
                         config.max_object_height)
         if over is not None:
-            tried.append({**record, "reason": f"lies over support {over}'s footprint within "
-                          f"max_object_height {config.max_object_height} m of it: its relief or what stands on it"})
+            tried.append({**record, "reason": f"a level of support {over} ({supports[over].source}): within "
+                          f"max_object_height {config.max_object_height} m of it, over its footprint or beside "
+                          "the frame's support (its relief or what stands on it)"})
             free[pool[inl]] = False
             continue
         near = np.zeros(len(points), bool)
