@@ -1,18 +1,22 @@
 """Fitted benchmark scenes made the way users' trainers make them: gsplat 1.5.3, initialised from
 sparse SfM-like points, densified by its ``DefaultStrategy`` (or ``MCMCStrategy``), on a GPU.
 
-    # here (CPU): synthesize each scene and give it SfM-like points (sparse/0/points3D.txt)
-    python -m experiments.fit_gsplat prepare --preset default --seeds 2001 2002 2003 --root /tmp/gsplat_scenes
-    # on the GPU host (torch + CUDA; the gsplat 1.5.3 wheel is pure Python and compiles its CUDA on
-    # first use): one scene folder per (scene, strategy), gt/ kept, gt/fit.json saying how
-    python -m experiments.fit_gsplat fit /tmp/gsplat_scenes/default2001 ... --strategy default \\
+    # here (CPU): synthesize each scene, give it SfM-like points (sparse/0/points3D.txt) and copy
+    # what a trainer reads (images, cameras, points) to a small folder that travels to the GPU host
+    python -m experiments.fit_gsplat prepare --preset default --seeds 2001 2002 2003 \
+        --root /tmp/gsplat_scenes --carry gsplat_inputs
+    # on the GPU host (torch + CUDA; the gsplat 1.5.3 wheel is pure Python and compiles its CUDA
+    # on first use): one .npz per (scene, trainer) and the runs' JSON
+    python -m experiments.fit_gsplat fit gsplat_inputs/default2001 ... --strategy default \
         --steps 10000 --seed 0 --out OUT [--own-fit]
+    # here: each fit becomes the capture of a copy of its scene folder (gt/ kept, gt/fit.json)
+    python -m experiments.fit_gsplat install OUT/*.npz --root /tmp/gsplat_scenes
 
 ``prepare`` writes a ``phirie synth`` folder (``--root/<preset><seed>``) whose COLMAP points are
 what structure from motion would give: points on the scene's surface that at least
 ``MIN_TRACK`` cameras see (a ray from the camera meets the surface there), ``--sfm-points`` of
 them picked at random, each moved by isotropic noise of ``--sfm-noise`` metres, plus
-``--sfm-outliers`` of them replaced by mismatches anywhere in the cameras' common box; colour =
+``--sfm-outliers`` of them replaced by mismatches anywhere in the seen surface's box; colour =
 the mean of the pixels it projects to in the views that see it.
 
 ``fit`` trains gsplat's ``rasterization`` as its ``examples/simple_trainer.py`` does: the SfM
@@ -22,11 +26,16 @@ quaternions), Adam with simple_trainer's learning rates (means 1.6e-4 × scene s
 every 1000 steps up to degree 3, black background, the strategy's densification with its
 defaults (``mcmc``: opacity and scale regularisation 0.01, initial opacity 0.5 and scale 0.1, as
 simple_trainer's mcmc config; ``--cap-max`` Gaussians). Gaussians with opacity below 0.005 are
-dropped at export. The fitted set becomes the folder's capture (``install_fit``: the ideal set
-moves to gt/ideal/, gt/labels.npy labels the fitted Gaussians by the nearest ideal one).
-``--own-fit`` also fits the same scene with the project's fitter (``FIT_PRESETS``), the baseline,
-in the same run. Prints one JSON object per fit (compile = the first step, gsplat's CUDA JIT
-included; run = the other steps), then the list.
+dropped at export. ``--own-fit`` also fits each scene with the project's fitter
+(``FIT_PRESETS``), the baseline, in the same run. Each fit is exported as
+``<scene>_gsplat_<strategy>.npz`` (``<scene>_fitted.npz``): ``experiments.fit_scenes``' arrays,
+SH stored as float16 so a few hundred thousand Gaussians fit the 16 MB a file the GPU host hands
+back. Prints one JSON object per fit (compile = the first step, gsplat's CUDA JIT included;
+run = the other steps), then the list.
+
+``install`` copies ``--root/<scene>`` to ``--root/<scene>_gsplat_<strategy>`` (or ``_fitted``) and
+makes the fit its capture (``install_fit``: the ideal set moves to gt/ideal/, gt/labels.npy labels
+the fitted Gaussians by the nearest ideal one, gt/fit.json records the fit).
 
 gsplat's CUDA kernels add with atomics, so a rerun with the same seed gives nearly, not exactly,
 the same Gaussians.
@@ -47,6 +56,7 @@ SURFACE_SPACING = 0.004  # m between the surface samples the SfM points are draw
 VISIBLE_TOL = 0.004    # m: a camera sees a sample when its ray meets the surface this close to it
 SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
 STRATEGIES = ("default", "mcmc")
+CARRIED = ("images", "sparse", "transforms.json", "gt/sfm.json")  # what a trainer reads
 
 
 # --- here: the scene and its SfM-like points -------------------------------------------------
@@ -106,7 +116,17 @@ def prepare(args) -> None:
         points, colours, record = sfm_points(folder, args.sfm_points, args.sfm_noise, args.sfm_outliers, seed)
         cameras = list(load_scene(folder, check_images=False).require_cameras())
         write_colmap_text(folder / "sparse" / "0", cameras, points=points, colors=colours)
-        write_text(folder / "gt" / "sfm.json", json.dumps({**record, "preset": args.preset}, indent=2))
+        write_text(folder / "gt" / "sfm.json", json.dumps({**record, "preset": args.preset, "seed": seed}, indent=2))
+        if args.carry is not None:
+            carried = args.carry / folder.name
+            if carried.exists():
+                shutil.rmtree(carried)
+            for part in CARRIED:
+                (carried / part).parent.mkdir(parents=True, exist_ok=True)
+                if (folder / part).is_dir():
+                    shutil.copytree(folder / part, carried / part)
+                else:
+                    shutil.copy2(folder / part, carried / part)
         print(json.dumps({"scene": str(folder), **record}), flush=True)
 
 
@@ -260,39 +280,60 @@ def train_gsplat(scene_dir: Path, strategy_name: str, steps: int, seed: int, cap
     return data, record
 
 
+def export(path: Path, data, record: dict) -> None:
+    """A fit as ``experiments.fit_scenes``' .npz, its SH as float16 (module docstring)."""
+    import io
+
+    from phirie_jax.io.atomic import write_bytes
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, record=np.array(json.dumps(record)), means=data.means, quats=data.quats,
+                        log_scales=data.log_scales, opacity_logits=data.opacity_logits, sh=data.sh.astype(np.float16))
+    write_bytes(path, buf.getvalue())
+
+
 def fit(args) -> None:
     from experiments.report import emit
-    from phirie_jax.synthetic.fitted import FitResult, fit_scene_folder, install_fit
 
     args.out.mkdir(parents=True, exist_ok=True)
     runs = []
     for scene in args.scenes:
         sfm = json.loads((scene / "gt" / "sfm.json").read_text())
-        dest = args.out / f"{scene.name}_gsplat_{args.strategy}"
-        if dest.exists():
-            shutil.rmtree(dest)
-        shutil.copytree(scene, dest, symlinks=False)
-        data, record = train_gsplat(dest, args.strategy, args.steps, args.seed, args.cap_max)
-        install_fit(dest, FitResult(data, {**record, "sfm": sfm}))
-        runs.append({"scene": dest.name, **{k: v for k, v in record.items() if k != "train_psnr_per_view"}})
+        data, record = train_gsplat(scene, args.strategy, args.steps, args.seed, args.cap_max)
+        record = {**record, "sfm": sfm, "scene": scene.name}
+        export(args.out / f"{scene.name}_gsplat_{args.strategy}.npz", data, record)
+        runs.append({k: v for k, v in record.items() if k not in ("train_psnr_per_view", "sfm")})
         print(json.dumps(runs[-1]), flush=True)
         if args.own_fit:  # the baseline: the project's own fitter on the same scene, in the same run
-            from phirie_jax.synthetic.fitted import fit_config_for
+            from phirie_jax.synthetic.fitted import fit_config_for, fit_gaussians, read_training_views
             from phirie_jax.synthetic.scene import PRESETS
 
-            own = args.out / f"{scene.name}_fitted"
-            if own.exists():
-                shutil.rmtree(own)
-            shutil.copytree(scene, own)
-            result = fit_scene_folder(own, PRESETS[sfm["preset"]].background_rgb, fit_config_for(sfm["preset"]),
-                                      seed=args.seed)
-            r = result.record
-            runs.append({"scene": own.name, "trainer": "phirie (kernels.splat_fit)", "steps": r["steps"],
-                         "gaussians": r["gaussians"], "train_psnr": r["train_psnr"], "compile_s": r["compile_s"],
-                         "run_s": r["run_s"], "wall_s": r["wall_s"], "device": r["device"]})
+            images, cameras = read_training_views(scene)
+            result = fit_gaussians(images, cameras, fit_config_for(sfm["preset"]), seed=sfm["seed"],
+                                   background=PRESETS[sfm["preset"]].background_rgb)
+            own = {**result.record, "trainer": "phirie (kernels.splat_fit)", "scene": scene.name}
+            export(args.out / f"{scene.name}_fitted.npz", result.gaussians, own)
+            runs.append({k: own[k] for k in ("scene", "trainer", "steps", "gaussians", "train_psnr", "compile_s",
+                                            "run_s", "wall_s", "device")})
             print(json.dumps(runs[-1]), flush=True)
     emit({"strategy": args.strategy, "steps": args.steps, "seed": args.seed, "runs": runs},
          args.out / f"fit_gsplat_{args.strategy}.json")
+
+
+def install(args) -> None:
+    from experiments.fit_scenes import read_fit
+    from phirie_jax.synthetic.fitted import FitResult, install_fit
+
+    for path in args.fits:
+        fitted = read_fit(path)
+        scene = fitted.record["scene"]
+        dest = args.root / path.stem
+        if dest.exists():
+            shutil.rmtree(dest)
+        shutil.copytree(args.root / scene, dest)
+        install_fit(dest, FitResult(fitted.gaussians, fitted.record))
+        print(f"{dest}: {fitted.gaussians.num:,} Gaussians from {path.name} "
+              f"({fitted.record.get('trainer')}, train PSNR {fitted.record['train_psnr']:.2f} dB)", flush=True)
 
 
 def main() -> None:
@@ -305,6 +346,7 @@ def main() -> None:
     p.add_argument("--sfm-points", type=int, default=8000)
     p.add_argument("--sfm-noise", type=float, default=0.003, help="metres (isotropic, per point)")
     p.add_argument("--sfm-outliers", type=float, default=0.02, help="share of mismatched points")
+    p.add_argument("--carry", type=Path, default=None, help="also copy what a trainer reads here")
     f = sub.add_parser("fit", help="GPU host: gsplat training of prepared folders")
     f.add_argument("scenes", type=Path, nargs="+")
     f.add_argument("--strategy", choices=STRATEGIES, default="default")
@@ -313,8 +355,11 @@ def main() -> None:
     f.add_argument("--cap-max", type=int, default=300_000, help="MCMCStrategy's Gaussian budget")
     f.add_argument("--own-fit", action="store_true", help="also the project's own fitter (baseline)")
     f.add_argument("--out", type=Path, required=True)
+    i = sub.add_parser("install", help="here: make exported fits the captures of copies of their scenes")
+    i.add_argument("fits", type=Path, nargs="+")
+    i.add_argument("--root", type=Path, required=True, help="where prepare wrote the scene folders")
     args = parser.parse_args()
-    prepare(args) if args.command == "prepare" else fit(args)
+    {"prepare": prepare, "fit": fit, "install": install}[args.command](args)
 
 
 if __name__ == "__main__":
