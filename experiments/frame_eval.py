@@ -4,7 +4,8 @@ and synthetic tabletops copied into a tilted, non-metric frame (with and without
 For each: up's error (degrees), the scale against the truth and the stated band, where up and
 the scale came from, every cue's angle to up, the warnings, and the frame's seconds.
 
-    python experiments/frame_eval.py [--real] [--synthetic tiny default] [--out experiments/results/frame_eval.json]
+    python experiments/frame_eval.py [--real] [--synthetic tiny default] [--fitted tiny]
+                                     [--out experiments/results/frame_eval.json]
 """
 
 from __future__ import annotations
@@ -59,13 +60,17 @@ def real(name: str, truth: dict) -> dict:
             "truth_range_in_band": bool(low <= record["scale_range"][0] and record["scale_range"][1] <= high)}
 
 
-def synthetic(preset: str, seed: int, marker: float, work: Path) -> dict:
+def synthetic(preset: str, seed: int, marker: float, work: Path, fitted: bool = False) -> dict:
     from phirie_jax.synthetic import synthesize
+    from phirie_jax.synthetic.fitted import synthesize_fitted
     from phirie_jax.synthetic.reframe import reframe_scene
 
-    folder = work / f"{preset}_{seed}_{marker:g}"
+    folder = work / f"{preset}_{seed}_{marker:g}_{'fitted' if fitted else 'ideal'}"
     t0 = time.perf_counter()
-    synthesize(folder / "scene", preset=preset, seed=seed, marker=marker)
+    if fitted:
+        synthesize_fitted(folder / "scene", preset, seed)
+    else:
+        synthesize(folder / "scene", preset=preset, seed=seed, marker=marker)
     reframe_scene(folder / "scene", folder / "tilted", WORLD_TO_CAPTURE)
     made = time.perf_counter() - t0
     scene = load_scene(folder / "tilted")
@@ -73,7 +78,7 @@ def synthetic(preset: str, seed: int, marker: float, work: Path) -> dict:
     frame = resolve_frame(scene, FrameConfig(marker_size=marker or None))
     seconds = time.perf_counter() - t0
     scale, rotation, _ = split_sim3(frame.capture_to_world @ WORLD_TO_CAPTURE)
-    return {"preset": preset, "seed": seed, "marker_m": marker, **frame_record(frame, seconds),
+    return {"preset": preset, "seed": seed, "fitted": fitted, "marker_m": marker, **frame_record(frame, seconds),
             "synthesize_s": round(made, 1), "up_error_deg": round(float(np.degrees(np.arccos(min(1.0, rotation[2, 2])))), 3),
             "scale_over_truth": round(scale, 4),
             "truth_in_band": bool(1 / frame.scale_uncertainty <= scale <= frame.scale_uncertainty)}
@@ -84,6 +89,8 @@ def main() -> None:
     parser.add_argument("--real", action="store_true", help="the real captures in ../shared/data/captures")
     parser.add_argument("--synthetic", nargs="*", default=[], help="synthetic presets (each with seed 1, "
                         "without a marker and with a 15 cm one)")
+    parser.add_argument("--fitted", nargs="*", default=[], help="synthetic presets fitted like a real capture "
+                        "(phirie synth --fitted: the preset's fit, seed 1, no marker)")
     parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "frame_eval.json")
     args = parser.parse_args()
     results = {"real": [], "synthetic": []}
@@ -97,6 +104,9 @@ def main() -> None:
             for marker in (0.0, 0.15 if preset != "tiny" else 0.25):
                 results["synthetic"].append(synthetic(preset, 1, marker, Path(work)))
                 print(json.dumps(results["synthetic"][-1]), flush=True)
+        for preset in args.fitted:
+            results["synthetic"].append(synthetic(preset, 1, 0.0, Path(work), fitted=True))
+            print(json.dumps(results["synthetic"][-1]), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     temporary = args.out.with_suffix(".tmp")
     temporary.write_text(json.dumps(results, indent=1) + "\n")

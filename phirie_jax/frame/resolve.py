@@ -151,9 +151,10 @@ def world_camera(camera: Camera, capture_to_world: np.ndarray) -> Camera:
     return dataclasses.replace(camera, world_to_camera=out)
 
 
-def _cues(scene: SceneInput, config: FrameConfig, rng) -> tuple[list, list, object, list, float | None, dict]:
+def _cues(scene: SceneInput, config: FrameConfig, rng) -> tuple[list, list, object, list, float | None, dict,
+                                                                 np.ndarray]:
     """(gravity cues, planes of both point sets, orbit, markers, cameras' distance to the scene,
-    evidence) of a scene with cameras."""
+    evidence, both point sets (P, 3)) of a scene with cameras."""
     from phirie_jax.frame import lines
     from phirie_jax.frame.orbit import SIGMA_DEG as ORBIT_SIGMA_DEG
     from phirie_jax.frame.orbit import orbit as find_orbit
@@ -172,7 +173,7 @@ def _cues(scene: SceneInput, config: FrameConfig, rng) -> tuple[list, list, obje
     evidence["orbit"] = None if orbit is None else orbit.as_dict()
     if orbit is not None and orbit.surrounds and orbit.up is not None:
         cues.append(Cue("orbit", "the cameras' orbit", orbit.up, ORBIT_SIGMA_DEG, {"distance": orbit.distance}))
-    planes, distance = [], None
+    planes, distance, samples = [], None, [np.zeros((0, 3))]
     if scene.gaussians is not None:
         try:
             points, distance = estimate.visible_centres(scene.gaussians, scene.cameras, rng)
@@ -183,6 +184,7 @@ def _cues(scene: SceneInput, config: FrameConfig, rng) -> tuple[list, list, obje
             surface = surface_points(scene.gaussians, scene.cameras)
             if len(surface) > estimate.MAX_SAMPLES:
                 surface = surface[rng.choice(len(surface), estimate.MAX_SAMPLES, replace=False)]
+            samples = [points, surface]
             for source, sample in (("centres", points), ("surface", surface)):
                 if len(sample) >= 3:
                     planes += estimate.oriented_planes(estimate.find_planes(sample, threshold, rng), scene.cameras,
@@ -198,7 +200,7 @@ def _cues(scene: SceneInput, config: FrameConfig, rng) -> tuple[list, list, obje
             normal = np.sum([m.normal(scene.cameras) * len(m.views) for m in found], axis=0)
             cues.append(Cue("markers", f"markers' plane ({len(found)} marker(s))", normal / np.linalg.norm(normal),
                             markers.SIGMA_DEG, {"markers": len(found)}))
-    return cues, planes, orbit, found, distance, evidence
+    return cues, planes, orbit, found, distance, evidence, np.concatenate(samples)
 
 
 def _marker_plane(found: list, cameras, up: np.ndarray) -> estimate.Plane | None:
@@ -216,7 +218,7 @@ def _marker_plane(found: list, cameras, up: np.ndarray) -> estimate.Plane | None
 
 
 def _scale(scene: SceneInput, config: FrameConfig, up: np.ndarray, decision, planes: list, orbit, found: list,
-           distance: float | None, warnings: list) -> tuple[float, str, float, dict]:
+           distance: float | None, warnings: list, samples: np.ndarray) -> tuple[float, str, float, dict]:
     """(metres per unit, source, ×/÷ band, evidence) given, declared, measured by markers or a prior."""
     if config.scale is not None:
         return config.scale, "given (--scale)", 1.0, {}
@@ -244,8 +246,12 @@ def _scale(scene: SceneInput, config: FrameConfig, up: np.ndarray, decision, pla
     if distance is None:
         raise SceneInputError(scene.root, "scale", "cannot be estimated without Gaussians in front of the "
                               "cameras (expected --scale, --known-distance, --marker-size or --metric)")
-    scale, source, band, measured = priors.scale_prior(decision.support, planes, up, scene.cameras, orbit, distance)
-    return scale, source, band, {**measured, "prior": True}
+    floor = None
+    if decision.support is not None:
+        floor = priors.find_floor(samples, decision.support, up, scene.cameras, estimate.PLANE_THRESHOLD * distance)
+    scale, source, band, measured = priors.scale_prior(decision.support, planes + ([floor] if floor else []), up,
+                                                       scene.cameras, orbit, distance)
+    return scale, source, band, {**measured, "prior": True, "floor": None if floor is None else floor.as_dict()}
 
 
 def resolve_frame(scene: SceneInput, config: FrameConfig = FrameConfig()) -> SceneFrame:
@@ -257,9 +263,9 @@ def resolve_frame(scene: SceneInput, config: FrameConfig = FrameConfig()) -> Sce
     if not scene.cameras:
         up = given[0] if given else np.array([0.0, 0.0, 1.0])
         decision = UpDecision(up, given[1] if given else "default +z (no cameras)", None, (), (), (), {})
-        cues, planes, orbit, found, distance, evidence = [], [], None, [], None, {}
+        cues, planes, orbit, found, distance, evidence, samples = [], [], None, [], None, {}, np.zeros((0, 3))
     else:
-        cues, planes, orbit, found, distance, evidence = _cues(scene, config, rng)
+        cues, planes, orbit, found, distance, evidence, samples = _cues(scene, config, rng)
         reference = consensus(cues)[0] if given is None else given[0]
         marker_plane = _marker_plane(found, scene.cameras, reference) if reference is not None else None
         threshold = estimate.PLANE_THRESHOLD * (distance or 1.0)
@@ -267,7 +273,7 @@ def resolve_frame(scene: SceneInput, config: FrameConfig = FrameConfig()) -> Sce
     up = decision.up / np.linalg.norm(decision.up)
     warnings = list(decision.warnings)
     scale, scale_source, uncertainty, scale_evidence = _scale(scene, config, up, decision, planes, orbit, found,
-                                                              distance, warnings)
+                                                              distance, warnings, samples)
     evidence = {**evidence, **decision.evidence, "scale": scale_evidence}
     rotation = rotation_to_z(up)
     matrix = sim3_matrix(scale, rotation, np.zeros(3))

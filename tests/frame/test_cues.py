@@ -211,3 +211,21 @@ def test_plumb_lines_recover_the_vertical_among_clutter(monkeypatch):
     monkeypatch.setattr(lines, "detect_segments", lambda camera: vertical_segments([camera], up, rng, 0, 30)[0])
     none, why = lines.plumb_lines(tuple(cameras), estimate.cameras_up(cameras), rng)
     assert none is None and "straight edges" in why
+
+
+def test_the_floor_is_found_under_a_rough_support_and_not_in_clutter():
+    """RANSAC may spend its planes on the pieces of a rough table top; the floor is then looked
+    for as the densest level where a floor can be (the support at 0.3–0.9 of the cameras' height
+    over it). Points scattered at every height (a room's clutter) have no such level."""
+    rng = np.random.default_rng(5)
+    cameras = tuple(ring(12, radius=1.3, height=1.4, target=(0, 0, 0.8)))
+    table = plane_points(Z, 0.75, rng, 4000, 1.0) + rng.normal(0, 0.01, (4000, 3))
+    floor = plane_points(Z, 0.0, rng, 1500, 3.0)
+    support = estimate.Plane(Z, 0.75, 4000, 0.5, "centres", 0, table)
+    found = priors.find_floor(np.concatenate([table, floor]), support, Z, cameras, 0.01)
+    assert found is not None and found.offset == pytest.approx(0.0, abs=0.01) and found.source == "floor"
+    scale, source, band, _ = priors.scale_prior(support, [found], Z, cameras, None, 1.5)
+    assert source.startswith("prior: the support 0.75") and scale == pytest.approx(priors.SUPPORT_HEIGHT_M / 0.75,
+                                                                                   rel=0.02)
+    clutter = rng.uniform([-1.5, -1.5, -0.5], [1.5, 1.5, 0.7], (1500, 3))
+    assert priors.find_floor(np.concatenate([table, clutter]), support, Z, cameras, 0.01) is None
