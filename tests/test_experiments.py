@@ -130,3 +130,23 @@ def test_gsplat_fit_sfm_points_lie_on_the_seen_surface(tmp_path):
     write_colmap_text(tmp_path / "sparse" / "0", cams, points=points, colors=colours)
     back, rgb = read_points3d(tmp_path / "sparse" / "0" / "points3D.txt")
     np.testing.assert_allclose(back, points, atol=1e-9) and np.testing.assert_allclose(rgb * 255, colours)
+
+
+def test_gsplat_fit_export_reads_back_as_a_fit(tmp_path):
+    """fit_gsplat's export (SH as float16) is read by fit_scenes.read_fit like any fit."""
+    import numpy as np
+
+    from experiments.fit_gsplat import export
+    from experiments.fit_scenes import read_fit
+    from phirie_jax.types import GaussianSplatData
+
+    rng = np.random.default_rng(0)
+    n = 9
+    data = GaussianSplatData(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                             log_scales=np.full((n, 3), -4.0, np.float32), opacity_logits=np.zeros(n, np.float32),
+                             sh=rng.normal(size=(n, 16, 3)).astype(np.float32))
+    export(tmp_path / "s_gsplat_default.npz", data, {"scene": "s", "steps": 3, "seed": 0, "gaussians": n})
+    back = read_fit(tmp_path / "s_gsplat_default.npz")
+    assert back.record["scene"] == "s" and back.gaussians.sh.dtype == np.float32
+    np.testing.assert_array_equal(back.gaussians.means, data.means)
+    np.testing.assert_allclose(back.gaussians.sh, data.sh, rtol=1e-3, atol=1e-3)
