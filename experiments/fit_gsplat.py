@@ -293,6 +293,10 @@ def export(path: Path, data, record: dict) -> None:
 
 
 def fit(args) -> None:
+    import os
+
+    # torch and (with --own-fit) JAX share the GPU: JAX must not take 75 % of it when it starts
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     from experiments.report import emit
 
     args.out.mkdir(parents=True, exist_ok=True)
