@@ -150,7 +150,7 @@ def _variant(inpaint: str, iterations: int | None):
 
 
 def _hole(full_out, kept_out, disk_out, config) -> np.ndarray:
-    """The targets' hole definition (``construct.background.targets.build_frame``) on a full image.
+    """The targets' hole definition (``construct.background.targets.finish_frame``) on a full image.
     config: a ``TargetsConfig``."""
     from scipy import ndimage
 

@@ -19,12 +19,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from kernels import fill as fill_kernel
+from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.targets import Frame
 from phirie_jax.geometry import sigmoid
 from phirie_jax.progress import task
-from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two, pad_gaussians
+from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
 from phirie_jax.types import GaussianSplatData
 
 MIN_CAPACITY = 1 << 14
@@ -81,7 +82,11 @@ def frame_disks(disk_set: DiskSet, frame: Frame, max_sigma: float, max_offset: f
 
 
 def stack_frames(frames: list[Frame], count: int, disk_lists: list[np.ndarray]) -> fill_kernel.FillFrame:
-    """The frames as one batched ``FillFrame`` of ``count`` (≥ len(frames)) entries."""
+    """The frames as one batched ``FillFrame`` of ``count`` (≥ len(frames)) entries, stacked and
+    padded on the host (one transfer per field; on the device every slab of a new size compiled
+    its own padding programs)."""
+    from phirie_jax.construct.background.views import padded
+
     slab_size = gaussian_bucket(max(f.slab.num for f in frames))
     disk_size = gaussian_bucket(max(len(d) for d in disk_lists))
     size = frames[0].crop.size
@@ -89,30 +94,38 @@ def stack_frames(frames: list[Frame], count: int, disk_lists: list[np.ndarray]) 
     for k in range(count):
         if k < len(frames):
             f = frames[k]
-            slab = pad_gaussians(f.slab.to_kernel(), slab_size)
             disks = np.zeros(disk_size, np.int32)
             disks[: len(disk_lists[k])] = disk_lists[k]
-            w2c = np.asarray(f.crop.camera.world_to_camera, np.float32)
-            items.append(fill_kernel.FillFrame(
-                K=jnp.asarray(f.crop.camera.K, jnp.float32), world_to_camera=jnp.asarray(w2c), slab=slab,
-                front_rgb=jnp.asarray(f.front_rgb), front_trans=jnp.asarray(f.front_trans),
-                back_rgb=jnp.asarray(f.back_rgb), kept_rgb=jnp.asarray(f.kept_rgb), reach=jnp.asarray(f.reach),
-                target=jnp.asarray(f.target), mask=jnp.asarray(f.mask), disks=jnp.asarray(disks),
-                disk_valid=jnp.asarray(np.arange(disk_size) < len(disk_lists[k]))))
-        else:
+            items.append({
+                "K": np.asarray(f.crop.camera.K, np.float32),
+                "world_to_camera": np.asarray(f.crop.camera.world_to_camera, np.float32),
+                "slab": padded(f.slab, slab_size), "front_rgb": f.front_rgb, "front_trans": f.front_trans,
+                "back_rgb": f.back_rgb, "kept_rgb": f.kept_rgb, "reach": f.reach, "target": f.target,
+                "mask": f.mask, "disks": disks, "disk_valid": np.arange(disk_size) < len(disk_lists[k])})
+        else:  # a padding frame: the first one's arrays seen by a camera that sees nothing, no loss
             w2c = np.eye(4, dtype=np.float32)
             w2c[2, 3] = EMPTY_DEPTH
-            first = items[0]
-            items.append(dataclasses.replace(
-                first, world_to_camera=jnp.asarray(w2c), mask=jnp.zeros((size, size), jnp.float32)))
-    return jax.tree.map(lambda *x: jnp.stack(x), *items)
+            items.append({**items[0], "world_to_camera": w2c, "mask": np.zeros((size, size), np.float32)})
+
+    def stacked(key):
+        return jnp.asarray(np.stack([np.asarray(item[key]) for item in items]))
+
+    slab = Gaussians(**{k: jnp.asarray(np.stack([item["slab"][k] for item in items])) for k in items[0]["slab"]})
+    return fill_kernel.FillFrame(
+        K=stacked("K"), world_to_camera=stacked("world_to_camera"), slab=slab, disks=stacked("disks"),
+        disk_valid=stacked("disk_valid"), front_rgb=stacked("front_rgb"), front_trans=stacked("front_trans"),
+        back_rgb=stacked("back_rgb"), kept_rgb=stacked("kept_rgb"), reach=stacked("reach"),
+        target=stacked("target"), mask=stacked("mask"))
+
+
+_fill_gaussians = jax.jit(fill_kernel.fill_gaussians)
 
 
 def _to_data(params: fill_kernel.FillParams, geom: fill_kernel.FillGeometry, n: int, sh_coeffs: int
              ) -> GaussianSplatData:
-    g = fill_kernel.fill_gaussians(params, geom)
+    g = jax.tree.map(np.asarray, _fill_gaussians(params, geom))  # one program, sliced on the host
     sh = np.zeros((n, sh_coeffs, 3), np.float32)
-    sh[:, 0] = np.asarray(g.sh[:n, 0])
+    sh[:, 0] = g.sh[:n, 0]
     return GaussianSplatData(means=np.asarray(g.means[:n], np.float32), quats=np.asarray(g.quats[:n], np.float32),
                              log_scales=np.asarray(g.log_scales[:n], np.float32),
                              opacity_logits=np.asarray(g.opacity_logits[:n], np.float32), sh=sh)

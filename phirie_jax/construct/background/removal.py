@@ -38,7 +38,15 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.construct.background.config import BackgroundConfig
-from phirie_jax.construct.background.views import Crop, CropRenderer, make_crop, pass_bucket
+from phirie_jax.construct.background.views import (
+    Crop,
+    CropImage,
+    CropJob,
+    CropRenderer,
+    batch_size,
+    make_crop,
+    pass_bucket,
+)
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.layout import resolve
 from phirie_jax.observe.raycast import Raycaster
@@ -184,24 +192,32 @@ def _mask_jobs(objects: list[ObjectInput], cameras: tuple[Camera, ...], config: 
                               margin)) for k, j in picked]
 
 
-def _job_votes(data: GaussianSplatData, idx: np.ndarray, job: MaskJob, cameras: tuple[Camera, ...],
-               config: BackgroundConfig, crops: CropRenderer, pad: int) -> tuple[np.ndarray, np.ndarray] | str:
-    """One view's votes for the candidates ``idx`` (K,) of one object: (K,) bool in the mask and
-    visible, (K,) bool in the mask; or the problem (a message) that keeps this view from voting."""
-    try:
-        mask = read_mask(job.mask_path)
-    except OSError as err:
-        return str(err)
+def _job_mask(job: MaskJob, cameras: tuple[Camera, ...], masks: dict[Path, np.ndarray | str]) -> np.ndarray | str:
+    """The job's mask image (each file read once: ``masks`` caches it), or the problem (a message)
+    that keeps this view from voting."""
+    if job.mask_path not in masks:
+        try:
+            masks[job.mask_path] = read_mask(job.mask_path)
+        except OSError as err:
+            masks[job.mask_path] = str(err)
+    mask = masks[job.mask_path]
+    if isinstance(mask, str):
+        return mask
     cam = cameras[job.view]
     if mask.shape != (cam.height, cam.width):
         return f"{job.mask_path}: {mask.shape[1]}×{mask.shape[0]}, camera is {cam.width}×{cam.height}"
-    try:
-        out = crops.render(data.subset(idx), job.crop, pad)
-    except RuntimeError as err:  # the renderer's buffers: this view does not vote
-        return f"view {job.view}: {err}"
-    depth = np.asarray(out.depth_normalized)
-    alpha = np.asarray(out.alpha)
-    uv, z = job.crop.camera.project(data.means[idx].astype(np.float64))
+    return mask
+
+
+def _job_votes(means: np.ndarray, idx: np.ndarray, job: MaskJob, mask: np.ndarray, image: CropImage,
+               cameras: tuple[Camera, ...], config: BackgroundConfig) -> tuple[np.ndarray, np.ndarray]:
+    """One view's votes for the candidates ``idx`` (K,) of one object, from its mask and the crop
+    render of those candidates: (K,) bool in the mask and visible, (K,) bool in the mask.
+    means: (N, 3) float64, every Gaussian's centre."""
+    cam = cameras[job.view]
+    depth = image.depth_normalized
+    alpha = image.alpha
+    uv, z = job.crop.camera.project(means[idx])
     col = np.floor(uv[:, 0]).astype(np.int64)
     row = np.floor(uv[:, 1]).astype(np.int64)
     size = job.crop.size
@@ -218,26 +234,62 @@ def _job_votes(data: GaussianSplatData, idx: np.ndarray, job: MaskJob, cameras: 
     return in_mask & visible, in_mask
 
 
+def _job_images(data: GaussianSplatData, candidates: list[np.ndarray], jobs: list[MaskJob], crops: CropRenderer,
+                pad: int) -> list[CropImage | str]:
+    """The depth renders of the jobs (each object's candidates in its crop), in batches
+    (``CropRenderer.render_many``); a batch the renderer refuses is rendered job by job, and a job
+    it still refuses gets the problem (a message): that view does not vote."""
+    images: list[CropImage | str] = []
+    per = batch_size(pad, len(jobs))
+    for start in range(0, len(jobs), per):
+        chunk = jobs[start:start + per]
+        try:
+            images += crops.render_many([CropJob(data, j.crop, candidates[j.obj]) for j in chunk], pad)
+            continue
+        except RuntimeError:  # the renderer's buffers: the views of this batch are tried alone
+            pass
+        for job in chunk:
+            try:
+                images.append(crops.render(data.subset(candidates[job.obj]), job.crop, pad))
+            except RuntimeError as err:
+                images.append(f"view {job.view}: {err}")
+    return images
+
+
 def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
-               config: BackgroundConfig, crops: CropRenderer) -> tuple[list[np.ndarray], list[dict]]:
-    """R_mask of every object (indices into ``data``) and a record per object."""
+               config: BackgroundConfig, crops: CropRenderer, candidates: list[np.ndarray] | None = None
+               ) -> tuple[list[np.ndarray], list[dict]]:
+    """R_mask of every object (indices into ``data``) and a record per object. The (object, view)
+    renders of all objects are one pass of batched launches; each mask file is read once.
+    candidates: per object, the indices of the Gaussians inside its expanded bounds (computed
+    here when not given)."""
     means = data.means.astype(np.float64)
-    candidates = [_in_box(means, o.bounds(config.removal.bounds_margin)) for o in objects]
+    if candidates is None:
+        candidates = [_in_box(means, o.bounds(config.removal.bounds_margin)) for o in objects]
     jobs = _mask_jobs(objects, cameras, config)
     pad = pass_bucket([len(c) for c in candidates])
     votes = [np.zeros(len(c), np.int64) for c in candidates]
     seen = [np.zeros(len(c), np.int64) for c in candidates]
     used: list[list[int]] = [[] for _ in objects]
     problems: list[list[str]] = [[] for _ in objects]
+    masks: dict[Path, np.ndarray | str] = {}
+    ready: list[tuple[MaskJob, np.ndarray]] = []
     for job in jobs:
         if len(candidates[job.obj]) == 0:
             continue
-        result = _job_votes(data, candidates[job.obj], job, cameras, config, crops, pad)
-        if isinstance(result, str):
-            problems[job.obj].append(result)
+        mask = _job_mask(job, cameras, masks)
+        if isinstance(mask, str):
+            problems[job.obj].append(mask)
+        else:
+            ready.append((job, mask))
+    images = _job_images(data, candidates, [j for j, _ in ready], crops, pad)
+    for (job, mask), image in zip(ready, images):
+        if isinstance(image, str):
+            problems[job.obj].append(image)
             continue
-        votes[job.obj] += result[0]
-        seen[job.obj] += result[1]
+        in_view, in_mask = _job_votes(means, candidates[job.obj], job, mask, image, cameras, config)
+        votes[job.obj] += in_view
+        seen[job.obj] += in_mask
         used[job.obj].append(job.view)
     sets, records = [], []
     for k, o in enumerate(objects):
@@ -252,19 +304,21 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
 def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
                  config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0)) -> tuple[list[np.ndarray], list[dict]]:
     """R_i for every object (sorted unique indices into ``data``) and per-object records with the
-    counts of R_obs, R_asset, R_mask and their union. Each object's mesh is prepared for ray
-    casting once, for R_asset, R_enclosed and R_reach."""
+    counts of R_obs, R_asset, R_mask and their union. The mask votes of all objects are one
+    pass of batched renders (``mask_votes``); each object's mesh is prepared for ray casting once,
+    for R_asset, R_enclosed and R_reach."""
     means = data.means.astype(np.float64)
-    masks, mask_records = mask_votes(data, objects, cameras, config, crops)
+    boxes = [_in_box(means, o.bounds(config.removal.bounds_margin)) for o in objects]
+    masks, mask_records = mask_votes(data, objects, cameras, config, crops, boxes)
     sets, records = [], []
-    for o, r_mask, mask_record in zip(objects, masks, mask_records):
+    for o, box, r_mask, mask_record in zip(objects, boxes, masks, mask_records):
         r_obs = near_points(means, o.q, config.removal.obs_radius)
         caster = Raycaster(*o.mesh) if o.mesh is not None and len(o.mesh[1]) else None
         r_asset = near_surface(means, caster, config.removal.asset_radius) if caster else np.zeros(0, np.int64)
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if caster is not None:
-            rest = np.setdiff1d(_in_box(means, o.bounds(config.removal.bounds_margin)), union, assume_unique=True)
+            rest = np.setdiff1d(box, union, assume_unique=True)
             if config.removal.enclosed_directions > 0:
                 r_enclosed = enclosed_by(means, rest, caster, np.asarray(up, np.float64),
                                          config.removal.enclosed_directions, config.removal.enclosed_lift)

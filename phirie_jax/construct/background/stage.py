@@ -21,8 +21,9 @@ targets, editor format), and the manifest ``background`` section: ``path``, ``re
 union, the plane, the fill, the primary view and a status ("filled", "untargeted" — disks
 coloured from neighbours only, no view sees them —, "nothing_exposed", "unsupported", "failed",
 "skipped"), plus ``unsupported_regions``, ``failed_completions``, the frames, the refinement
-record and the config; timings ``background`` and ``background.<step>``. A failure of one
-object is recorded and the rest go on.
+record, the crop renders and the launches that rendered them, the XLA programs compiled
+(``compiles``: count and seconds; it must not grow with the objects) and the config; timings
+``background`` and ``background.<step>``. A failure of one object is recorded and the rest go on.
 """
 
 from __future__ import annotations
@@ -35,12 +36,13 @@ import numpy as np
 
 from kernels.sh import SH_C0, rgb_to_sh_dc
 from phirie_jax import layout
+from phirie_jax.compile_count import CompileCount
 from phirie_jax.construct.background import plane as fill_mod
 from phirie_jax.construct.background import targets as inpaint
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.refine import DiskSet, refine
 from phirie_jax.construct.background.removal import ObjectInput, load_object, removal_sets
-from phirie_jax.construct.background.views import CropRenderer, cull, make_crop, pass_bucket
+from phirie_jax.construct.background.views import CropRenderer, make_crop
 from phirie_jax.geometry import sigmoid
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.scene import load_scene
@@ -114,7 +116,7 @@ def run_background(scene_dir: str | Path, out_dir: str | Path, config: Backgroun
     config = config or BackgroundConfig()
     manifest = Manifest.load_or_create(out_dir)
     objects = manifest.require("objects", "the object-construction stage")
-    with manifest.timed("background"):
+    with manifest.timed("background"), CompileCount() as compiles:
         with manifest.timed("background.load"):
             run = _load_inputs(scene_dir, out_dir, manifest, objects, config, scene)
         with manifest.timed("background.removal"):
@@ -135,8 +137,8 @@ def run_background(scene_dir: str | Path, out_dir: str | Path, config: Backgroun
             _mark_filled(run, fills)
         with manifest.timed("background.write"):
             background, kept_num = _write(run, removed, fill_data)
-        manifest.set("background", _section(run, config, removed, background, kept_num, frames_record,
-                                            refine_record))
+        manifest.set("background", {**_section(run, config, removed, background, kept_num, frames_record,
+                                               refine_record), "compiles": compiles.record()})
     manifest.write()
     return manifest.data
 
@@ -309,7 +311,8 @@ def _section(run: _Run, config: BackgroundConfig, removed: np.ndarray, backgroun
         "targets": {"method": "external" if config.targets.external else config.targets.inpaint,
                     "folder": layout.BACKGROUND_TARGETS if config.targets.write and frames_record else None,
                     "frames": frames_record},
-        "refine": refine_record, "renders": run.crops.renders, "config": to_dict(config)}
+        "refine": refine_record, "renders": run.crops.renders, "render_launches": run.crops.launches,
+        "config": to_dict(config)}
 
 
 # --- targets ------------------------------------------------------------------------------------
@@ -335,11 +338,31 @@ def _wanted_views(run: _Run, fills: list[_ObjectFill], grid: float, external_fol
     return wanted, external_frames
 
 
+def _shared_frames(boxes: list[tuple[int, list[int], np.ndarray]], external_frames: set[int], size: int,
+                   margin: int) -> list[tuple[int, list[int], np.ndarray]]:
+    """(view, objects, box) per frame: objects whose primary views coincide share one frame where
+    the union of their boxes fits a crop of ``size`` at full resolution (the size every crop of the
+    pass has anyway, so no other frame changes); an editor's frame stays as it is."""
+    shared: list[tuple[int, list[int], np.ndarray]] = []
+    for view, oids, box in boxes:
+        for k, (v, others, b) in enumerate(shared):
+            if v != view or view in external_frames:
+                continue
+            union = np.concatenate([np.minimum(b[:2], box[:2]), np.maximum(b[2:], box[2:])])
+            if max(union[2] - union[0] + 1, union[3] - union[1] + 1) + 2 * margin <= size:
+                shared[k] = (v, others + oids, union)
+                break
+        else:
+            shared.append((view, list(oids), box))
+    return shared
+
+
 def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_ObjectFill], config: BackgroundConfig
             ) -> tuple[list[inpaint.Frame], list[dict]]:
-    """Primary views, one frame crop per object around its disks (plus external frames), the
-    targets (written under ``background/targets`` when asked); returns the frames and their records.
-    removed: (N,) bool over G0."""
+    """Primary views, the frame crops around their objects' disks (objects of one view share a crop
+    where they fit one: ``_shared_frames``; plus external frames), the targets (written under
+    ``background/targets`` when asked); returns the frames and their records. Every frame's renders
+    are batched (``targets.render_plans``). removed: (N,) bool over G0."""
     external_folder = Path(config.targets.external) if config.targets.external else None
     wanted, external_frames = _wanted_views(run, fills, config.fill.grid, external_folder)
     cameras, data = run.cameras, run.data
@@ -353,19 +376,22 @@ def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_Obje
     if not boxes:
         return [], []
     size = max(make_crop(cameras[v], v, b, config.crops.target_sizes, margin).size for v, _, b in boxes)
+    boxes = _shared_frames(boxes, external_frames, size, margin)
     crops_of = [(oids, make_crop(cameras[v], v, b, (size,), margin)) for v, oids, b in boxes]  # one static size
-    pad = pass_bucket([len(cull(data, c.camera)) for _, c in crops_of])
+    normals = disk_set.normals()
+    plans = [inpaint.plan_frame(data, removed, disk_set.disks, normals, np.isin(disk_set.owner, oids), crop, oids,
+                                np.zeros(3, np.float32), config) for oids, crop in crops_of]
     frames = []
-    for oids, crop in crops_of:
-        view = crop.view
+    for plan, images in zip(plans, inpaint.render_plans(plans, run.crops)):
+        view = plan.crop.view
         try:
+            if isinstance(images, RuntimeError):
+                raise images
             external = (inpaint.read_external(external_folder, cameras[view])
                         if external_folder is not None and view in external_frames else None)
-            frames.append(inpaint.build_frame(data, removed, disk_set.disks, disk_set.normals(),
-                                              np.isin(disk_set.owner, oids), crop, oids, cameras[view],
-                                              np.zeros(3, np.float32), config, run.crops, pad, external))
+            frames.append(inpaint.finish_frame(plan, images, cameras[view], config, external))
         except RuntimeError as err:  # e.g. the renderer's buffers: these objects are untargeted
-            for oid in oids:
+            for oid in plan.objects:
                 run.records[oid].pop("primary_view", None)
                 run.failed.append({"id": oid, "reason": f"target frame {cameras[view].name}: {err}"})
     if config.targets.write and frames:

@@ -4,9 +4,13 @@ Primary view of an object: the camera that sees its fill region largest and shar
 projected area in pixels of its fill cells (in front of the camera and inside the image; the
 image-space resolution on the exposed footprint), times a blur factor when the captured
 images are available (variance of the Laplacian inside that area relative to the median of
-the five best views, capped at 1). Objects whose primary views coincide share that *frame*.
+the five best views, capped at 1). Objects whose primary views coincide share that *frame*
+where their regions fit together in one crop of the pass's size at full resolution (else each
+has its own crop of that view).
 
-A frame is a crop around all of its objects' regions (``views``). In it, rendered once:
+A frame is a crop around all of its objects' regions (``views``). In it, rendered once (the
+five passes of every frame in batched launches of one program: ``plan_frame``,
+``render_plans``, then ``finish_frame`` on the host):
 
 - the capture G0 with the removed Gaussians' indicator as a feature: their composited weight
   is the *region* (≥ ``region_weight``, grown by ``region_dilate_px``) — every removed object's,
@@ -48,6 +52,8 @@ from phirie_jax.construct.background.config import BackgroundConfig, TargetsConf
 from phirie_jax.construct.background.exemplar import exemplar_inpaint
 from phirie_jax.construct.background.views import (
     Crop,
+    CropImage,
+    CropJob,
     CropRenderer,
     cull,
     pass_bucket,
@@ -278,7 +284,7 @@ def disk_reach(disks: GaussianSplatData, crop: Crop, max_sigma: float, max_offse
     canvas = np.zeros((crop.size, crop.size), np.uint8)
     for (x, y), rad in zip(uv[z > 0], r[z > 0]):
         if -rad <= x <= crop.size + rad and -rad <= y <= crop.size + rad:
-            cv2.circle(canvas, (int(round(x)), int(round(y))), int(np.ceil(rad)) + 1, 1, -1)
+            cv2.circle(canvas, (round(x), round(y)), int(np.ceil(rad)) + 1, 1, -1)
     return canvas.astype(bool)
 
 
@@ -306,45 +312,55 @@ class _KeptRender:
     back_rgb: np.ndarray     # (C, C, 3)
 
 
-def _compose_kept(r_front, r_slab, r_back) -> _KeptRender:
+def _compose_kept(r_front: CropImage, r_slab: CropImage, r_back: CropImage) -> _KeptRender:
     """Front, slab and back renders composited front to back (the renderer's Σ wᵢ zᵢ per layer)."""
-    f_rgb, f_t = np.asarray(r_front.rgb), 1.0 - np.asarray(r_front.alpha)
-    s_rgb, s_t = np.asarray(r_slab.rgb), 1.0 - np.asarray(r_slab.alpha)
-    b_rgb = np.asarray(r_back.rgb)
+    f_rgb, f_t = r_front.rgb, 1.0 - r_front.alpha
+    s_rgb, s_t = r_slab.rgb, 1.0 - r_slab.alpha
+    b_rgb = r_back.rgb
     rgb = f_rgb + f_t[..., None] * (s_rgb + s_t[..., None] * b_rgb)
-    alpha = 1.0 - f_t * s_t * (1.0 - np.asarray(r_back.alpha))
-    depth_sum = np.asarray(r_front.depth) + f_t * (np.asarray(r_slab.depth) + s_t * np.asarray(r_back.depth))
+    alpha = 1.0 - f_t * s_t * (1.0 - r_back.alpha)
+    depth_sum = r_front.depth + f_t * (r_slab.depth + s_t * r_back.depth)
     depth = np.where(alpha > 0, depth_sum / np.maximum(alpha, 1e-10), np.inf)
     return _KeptRender(rgb, alpha, depth, f_rgb, f_t, b_rgb)
 
 
-def _region_hole_mask(removed_weight: np.ndarray, kept: _KeptRender, r_disks, crop: Crop, config: TargetsConfig
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _region_hole_mask(removed_weight: np.ndarray, kept: _KeptRender, r_disks: CropImage, crop: Crop,
+                      config: TargetsConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(C, C) bool region, hole and loss mask of a frame from the removed Gaussians' composited
     weight ``removed_weight`` (C, C), the kept render and the initial disks' render (module docstring)."""
     region = removed_weight >= config.region_weight
     if config.region_dilate_px > 0:
         region = ndimage.binary_dilation(region, iterations=config.region_dilate_px)
     region &= crop.inside
-    on_disks = np.asarray(r_disks.alpha) >= FILL_ALPHA
-    see_through = kept.depth > np.asarray(r_disks.depth_normalized) + config.plane_depth_tolerance
+    on_disks = r_disks.alpha >= FILL_ALPHA
+    see_through = kept.depth > r_disks.depth_normalized + config.plane_depth_tolerance
     # only where new disks will be can the target differ from the kept render
     hole = region & on_disks & ((kept.alpha < config.explained_alpha) | see_through)
     mask = ndimage.binary_dilation(region, iterations=config.loss_ring_px) if config.loss_ring_px > 0 else region
     return region, hole, mask & crop.inside
 
 
-def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: GaussianSplatData, disk_normals: np.ndarray,
-                own: np.ndarray, crop: Crop, objects: list[int], camera_full: Camera, background: np.ndarray,
-                config: BackgroundConfig, crops: CropRenderer, pad: int,
-                external: tuple[np.ndarray, np.ndarray | None] | None) -> Frame:
-    """Renders, region, hole, target and layers of one frame (module docstring).
+@dataclasses.dataclass(frozen=True)
+class FramePlan:
+    """One frame before any render: its five passes (``CropJob`` each) and what finishing needs.
 
-    removed: (N,) bool over ``data``; all_disks: (D,) every object's initial disks, disk_normals (D, 3);
-    own: (D,) bool, the disks of the frame's objects: the frame's loss covers the pixels they can
-    reach, and the fit renders there every disk and kept slab Gaussian that can touch them.
-    background: (3,) colour behind the back layer; external: an editor's (target, mask) of the full image.
-    """
+    Passes, in order: the capture with the removed Gaussians' indicator as a feature (``full``),
+    the kept front, back and slab (colour baked) layers, and the initial disks touching the crop."""
+
+    crop: Crop
+    objects: list[int]
+    jobs: tuple[CropJob, ...]  # (5,) full, front, back, slab, disks
+    baked: GaussianSplatData   # the slab, colour baked (SH DC)
+    own: GaussianSplatData     # the disks of the frame's objects
+
+
+def plan_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: GaussianSplatData, disk_normals: np.ndarray,
+               own: np.ndarray, crop: Crop, objects: list[int], background: np.ndarray, config: BackgroundConfig
+               ) -> FramePlan:
+    """The passes of one frame (module docstring). removed: (N,) bool over ``data``; all_disks: (D,)
+    every object's initial disks, disk_normals (D, 3); own: (D,) bool, the disks of the frame's objects
+    (the frame's loss covers the pixels they can reach, and the fit renders there every disk and kept
+    slab Gaussian that can touch them); background: (3,) colour behind the back layer."""
     cam, fill = crop.camera, config.fill
     idx = cull(data, cam)
     kept_idx = idx[~removed[idx]]
@@ -352,17 +368,26 @@ def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: Gaussia
     disks_here = all_disks.subset(here)
     reach_z = DEPTH_MARGIN_SIGMAS * fill.max_disk_sigma * fill.grid + fill.grid
     front, slab, back = split_layers(data, cam, kept_idx, disks_here, disk_normals[here], fill.slab, reach_z)
-    zeros = np.zeros(3, np.float32)
-    full = crops.render(data.subset(idx), crop, pad, features=removed[idx, None].astype(np.float32))
-    r_front = crops.render(data.subset(front), crop, pad, background=zeros)
-    r_back = crops.render(data.subset(back), crop, pad, background=background)
     slab_data = data.subset(slab)
     baked = dataclasses.replace(slab_data, sh=rgb_to_sh_dc(view_colours(slab_data, cam))
                                 .astype(np.float32)[:, None, :], extra={}, layout=())
-    r_slab = crops.render(baked, crop, pad, background=zeros)
-    r_disks = crops.render(disks_here, crop, max(pad, pass_bucket([disks_here.num])), background=zeros)
+    zeros = np.zeros(3, np.float32)
+    jobs = (CropJob(data, crop, idx, removed[idx, None].astype(np.float32)),
+            CropJob(data, crop, front, background=zeros),
+            CropJob(data, crop, back, background=np.asarray(background, np.float32)),
+            CropJob(baked, crop, background=zeros),
+            CropJob(disks_here, crop, background=zeros))
+    return FramePlan(crop, objects, jobs, baked, all_disks.subset(np.flatnonzero(own)))
+
+
+def finish_frame(plan: FramePlan, images: list[CropImage], camera_full: Camera, config: BackgroundConfig,
+                 external: tuple[np.ndarray, np.ndarray | None] | None) -> Frame:
+    """The frame from its five renders (``plan.jobs`` order): region, hole, target and layers
+    (module docstring). external: an editor's (target, mask) of the full image."""
+    crop, fill = plan.crop, config.fill
+    full, r_front, r_back, r_slab, r_disks = images
     kept = _compose_kept(r_front, r_slab, r_back)
-    region, hole, mask = _region_hole_mask(np.asarray(full.features)[..., 0], kept, r_disks, crop, config.targets)
+    region, hole, mask = _region_hole_mask(full.features[..., 0], kept, r_disks, crop, config.targets)
     if external is not None:
         target_full, mask_full = external
         target = crop.sample(target_full, camera_full.width, camera_full.height).astype(np.float32)
@@ -371,18 +396,37 @@ def build_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: Gaussia
         source = "external"
     else:
         # the support as the exemplar's source: its slab opaque, nothing of the kept scene in front
-        support = (np.asarray(r_slab.alpha) >= SUPPORT_ALPHA) & (kept.front_trans >= SUPPORT_ALPHA) & crop.inside
+        support = (r_slab.alpha >= SUPPORT_ALPHA) & (kept.front_trans >= SUPPORT_ALPHA) & crop.inside
         target = inpaint(kept.rgb.astype(np.float32), hole, config.targets.inpaint, config.targets.inpaint_radius,
                          support)
         source = config.targets.inpaint
-    own_here = all_disks.subset(np.flatnonzero(own))
-    reach = disk_reach(own_here, crop, fill.max_disk_sigma * fill.grid, fill.grid) if own_here.num \
+    reach = disk_reach(plan.own, crop, fill.max_disk_sigma * fill.grid, fill.grid) if plan.own.num \
         else np.zeros((crop.size, crop.size), bool)
     mask = mask & reach  # elsewhere the frame is the kept render: a constant of the loss
-    near = touching(baked, crop, reach)
-    return Frame(crop.view, crop, objects, region, hole, mask.astype(np.float32), kept.rgb.astype(np.float32),
+    near = touching(plan.baked, crop, reach)
+    return Frame(crop.view, crop, plan.objects, region, hole, mask.astype(np.float32), kept.rgb.astype(np.float32),
                  target.astype(np.float32), kept.front_rgb.astype(np.float32), kept.front_trans.astype(np.float32),
-                 kept.back_rgb.astype(np.float32), reach, baked.subset(near), source)
+                 kept.back_rgb.astype(np.float32), reach, plan.baked.subset(near), source)
+
+
+def render_plans(plans: list[FramePlan], crops: CropRenderer) -> list[list[CropImage] | RuntimeError]:
+    """The five renders of every frame, all frames' passes in batched launches of one padded count
+    (the largest pass's bucket: one program); when the renderer refuses a batch (its buffers), each
+    frame is rendered alone, and a frame it still refuses gets the error."""
+    pad = pass_bucket([j.num for p in plans for j in p.jobs])
+    jobs = [j for p in plans for j in p.jobs]
+    try:
+        images = crops.render_many(jobs, pad)
+        return [images[k * len(p.jobs):(k + 1) * len(p.jobs)] for k, p in enumerate(plans)]
+    except RuntimeError:
+        pass
+    out: list[list[CropImage] | RuntimeError] = []
+    for p in plans:
+        try:
+            out.append(crops.render_many(list(p.jobs), pass_bucket([j.num for j in p.jobs])))
+        except RuntimeError as err:
+            out.append(err)
+    return out
 
 
 def write_targets(folder: Path, frames: list[Frame], cameras: tuple[Camera, ...]) -> list[str]:

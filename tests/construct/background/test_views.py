@@ -1,0 +1,88 @@
+"""Crop rendering: host padding equals the renderer's, batched crops equal crops rendered one by
+one, and subsets of new sizes compile no new programs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from phirie_jax.compile_count import CompileCount
+from phirie_jax.construct.background.views import CropJob, CropRenderer, make_crop, padded, pass_bucket
+from phirie_jax.render import pad_gaussians
+from phirie_jax.types import GaussianSplatData
+from tests.construct.background import scene as toy
+
+BATCH_TOL = 1e-5  # batched (vmapped) vs one-by-one renders: the same kernel, at most float rounding apart
+
+
+@pytest.fixture(scope="module")
+def toy_data():
+    data = toy._cat([toy._gaussians(*toy._sphere_points(c, r, 0.006, np.random.default_rng(k)), toy.COLOURS[k],
+                                    0.005) for k, (c, r) in toy.SPHERES.items()])
+    return data, toy.cameras()
+
+
+def _dc_only(data: GaussianSplatData) -> GaussianSplatData:
+    return dataclasses.replace(data, sh=data.sh[:, :1].copy())
+
+
+def test_host_padding_equals_the_renderers():
+    data = toy._gaussians(np.arange(15.0).reshape(5, 3), np.tile([0.0, 0, 1], (5, 1)), (0.2, 0.4, 0.6), 0.01)
+    host = padded(data, 256)
+    device = pad_gaussians(data.to_kernel(), 256)
+    for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(host[field], np.asarray(getattr(device, field)), err_msg=field)
+    with pytest.raises(ValueError, match="do not fit"):
+        padded(data, 4)
+    assert padded(_dc_only(data), 256, sh_coeffs=16)["sh"][:, 1:].max() == 0.0
+
+
+def test_batched_crops_equal_crops_rendered_one_by_one(toy_data):
+    data, cams = toy_data
+    rng = np.random.default_rng(1)
+    jobs = []
+    for k, cam in enumerate(cams[:5]):
+        crop = make_crop(cam, k, np.array([10 + 3 * k, 8, 70, 60]), (64,), 4)
+        index = np.sort(rng.choice(data.num, size=300 + 97 * k, replace=False))
+        features = rng.uniform(0, 1, (len(index), 1 + k % 2)).astype(np.float32)
+        source = _dc_only(data) if k == 2 else data  # SH of one coefficient beside full SH: one program
+        jobs.append(CropJob(source, crop, index, features, None if k == 3 else rng.uniform(0, 1, 3)))
+    pad = pass_bucket([j.num for j in jobs])
+    batched = CropRenderer().render_many(jobs, pad)
+    alone = CropRenderer()
+    for job, image in zip(jobs, batched):
+        ref = alone.render(job.gaussians(), job.crop, pad, job.features, background=job.background)
+        for field in ("rgb", "alpha", "depth", "features"):
+            np.testing.assert_allclose(getattr(image, field), getattr(ref, field), atol=BATCH_TOL, err_msg=field)
+        np.testing.assert_allclose(image.depth_normalized, ref.depth_normalized, atol=BATCH_TOL)
+        assert image.alpha.max() > 0.1, "the crop sees its Gaussians"
+
+
+def test_subsets_of_new_sizes_compile_no_new_programs(toy_data):
+    data, cams = toy_data
+    crop = make_crop(cams[0], 0, np.array([10, 8, 70, 60]), (64,), 4)
+    renderer = CropRenderer()
+    renderer.render_many([CropJob(data, crop, np.arange(200))], 2048)   # compiles this pass's programs
+    renderer.render(data.subset(np.arange(210)), crop, 2048)
+    with CompileCount() as compiles:
+        for n in (333, 517, 1024, 1301):
+            renderer.render(data.subset(np.arange(n)), crop, 2048, features=np.ones((n, 1), np.float32))
+            renderer.render_many([CropJob(data, crop, np.arange(n - 7))], 2048)
+    assert compiles.count == 0, f"{compiles.count} programs compiled for subsets of new sizes"
+
+
+def test_a_batch_of_crops_of_different_sizes_is_refused(toy_data):
+    data, cams = toy_data
+    small = make_crop(cams[0], 0, np.array([10, 8, 20, 20]), (32,), 4)
+    large = make_crop(cams[0], 0, np.array([10, 8, 20, 20]), (64,), 4)
+    with pytest.raises(ValueError, match="one size"):
+        CropRenderer().render_many([CropJob(data, small), CropJob(data, large)], pass_bucket([data.num]))
+
+
+def test_compile_count_sees_a_new_program():
+    with CompileCount() as compiles:
+        jnp.arange(7919.0).sum().block_until_ready()   # a shape no other test uses
+    assert compiles.count >= 1 and compiles.seconds > 0
