@@ -136,6 +136,7 @@ def robot_env(converted):
     return Environment.load(converted[0], robot=RobotConfig(spacing=0.03))
 
 
+@pytest.mark.slow  # the robot's collision and actuator kernels: about a minute of compiling on a cold Warp cache
 def test_warp_worlds_with_the_robot_follow_mujoco_c(robot_env):
     from phirie_jax.interact.robot import script
 
@@ -169,20 +170,25 @@ def test_warp_worlds_with_the_robot_follow_mujoco_c(robot_env):
     env.reset()
 
 
-def test_a_played_control_sequence_equals_stepping_tick_by_tick(robot_env):
+def test_a_played_control_sequence_equals_stepping_tick_by_tick(tmp_path):
     """``play`` reads each tick's controls on the device: the same worlds as ``step(ctrl=...)``."""
     from phirie_jax.interact.batched import initial_data
     from phirie_jax.interact.warp_worlds import WarpWorlds
 
-    env = robot_env
-    data = initial_data(env.model, env.robot)
-    rng = np.random.default_rng(1)
-    sequence = np.repeat(np.repeat(data.ctrl[None, None], 6, 0), 2, 1)
-    sequence[:, :, env.robot.arm_actuators] += rng.uniform(-0.2, 0.2, (6, 2, len(env.robot.arm_actuators)))
-    played = WarpWorlds(env.model, data, 2, grasp=True)
+    env = slider_env(tmp_path)
+    data = initial_data(env.model)
+    sequence = np.random.default_rng(1).uniform(-1.0, 1.0, (12, 3, env.model.nu))
+    played = WarpWorlds(env.model, data, 3)
     played.play(sequence, 2)
-    stepped = WarpWorlds(env.model, data, 2, contacts=played.contacts, constraints=played.constraints)
+    stepped = WarpWorlds(env.model, data, 3)
     for tick in sequence:
         stepped.step(2, ctrl=tick)
     np.testing.assert_array_equal(played.field("qpos"), stepped.field("qpos"))
     np.testing.assert_array_equal(played.field("ctrl"), sequence[-1].astype(np.float32))
+    assert np.abs(played.field("qpos")).max() > 1e-3, "the controls moved the sliders"
+    played.reset()
+    played.play(sequence, 2, ticks=5)   # the first ticks only (a warm-up)
+    stepped.reset()
+    for tick in sequence[:5]:
+        stepped.step(2, ctrl=tick)
+    np.testing.assert_array_equal(played.field("qpos"), stepped.field("qpos"))
