@@ -192,3 +192,50 @@ def test_a_played_control_sequence_equals_stepping_tick_by_tick(tmp_path):
     for tick in sequence[:5]:
         stepped.step(2, ctrl=tick)
     np.testing.assert_array_equal(played.field("qpos"), stepped.field("qpos"))
+
+
+FOUR_DEVICES = """
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from phirie_jax.interact.batched import BatchedEnvironment
+from tests.interact.test_environment import toy_env
+
+assert jax.device_count() == 4
+env = toy_env(Path(sys.argv[1]))
+throws = np.random.default_rng(3).normal(0.0, 0.5, (6, env.model.nv))
+runs = {}
+for devices in (1, 4):
+    batch = BatchedEnvironment(env, 6, backend="warp", devices=devices)
+    assert batch.padded_worlds == (6 if devices == 1 else 8)
+    batch.set_velocities(throws)
+    batch.step(12)
+    placements = batch.placements()
+    assert placements.shape == (6, 2, 4, 4)
+    runs[devices] = np.asarray(placements)
+    if devices == 4:
+        poses, _ = batch.worlds.poses(batch.mesh.rows)
+        assert {s.device for s in poses.addressable_shards} == set(jax.devices())
+np.testing.assert_array_equal(runs[4], runs[1])
+assert np.abs(runs[1][1] - runs[1][0]).max() > 1e-3
+print("ok")
+"""
+
+
+def test_warp_worlds_spread_their_poses_over_the_jax_devices(tmp_path):
+    """Four JAX CPU devices (forced, in a process of its own): the Warp worlds (one CPU part) are
+    padded to a multiple of them, their poses split over them, and the placements equal one device's."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4".strip()
+    done = subprocess.run([sys.executable, "-c", FOUR_DEVICES, str(tmp_path)], check=False, cwd=root,
+                          capture_output=True, text=True, timeout=900,
+                          env=dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu"))
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), (done.stdout + done.stderr)[-3000:]
