@@ -30,7 +30,8 @@ pytestmark = pytest.mark.skipif(jax.device_count() < 4, reason="needs four devic
 ENERGY_TOL = 1e-6       # m: float32 sums of clipped distances over a few hundred points
 ROTATION_TOL = 1e-5     # matrix entries after 20 ICP iterations in float32
 TRANSLATION_TOL = 1e-6  # m
-QPOS_TOL = 1e-6         # m / quaternion units: 120 float32 contact steps, batches of 8 rows against 2
+QPOS_TOL = 1e-4         # m / quaternion units: 120 float32 contact steps, 8 rows vmapped against 2
+                        # (a toppling candidate grows a last-bit difference to ~2e-6 here)
 
 
 def test_rows_are_padded_spread_over_the_devices_and_cut():
@@ -132,7 +133,7 @@ def _sphere_env(tmp_path):
 
 
 def test_batched_worlds_over_devices_step_and_render_as_on_one_device(tmp_path):
-    from phirie_jax.interact.batched import BatchedEnvironment
+    from phirie_jax.interact.batched import BatchedEnvironment, _advance
 
     env = _sphere_env(tmp_path)
     worlds = 6                                  # padded to 8 worlds on four devices
@@ -142,7 +143,10 @@ def test_batched_worlds_over_devices_step_and_render_as_on_one_device(tmp_path):
         batch = BatchedEnvironment(env, worlds, devices=devices)
         assert batch.padded_worlds == (6 if devices == 1 else 8) and batch.data.qpos.shape[0] == worlds
         batch.set_velocities(throws)
-        batch.step(24)
+        batch.step(12)
+        compiled = _advance._cache_size()
+        batch.step(12)          # fed its own state (empty row blocks too): no second compile
+        assert _advance._cache_size() == compiled
         runs[devices] = (jax.device_get(batch.data), np.asarray(batch.placements()),
                          batch.render([0, 1], max_images=4))   # 2 worlds a device and call
     (data1, place1, image1), (data4, place4, image4) = runs[1], runs[4]

@@ -187,7 +187,9 @@ class BatchedEnvironment:
                                  "worlds × actuators)")
             ctrl = pad_rows(jnp.asarray(ctrl, self._data.ctrl.dtype), self.padded_worlds)
             self._data = self._data.replace(ctrl=self.mesh.put_rows(ctrl))
-        self._data = _advance(self.model, self._data, int(steps), self.mesh)
+        # put back on the rows' sharding: XLA reports an empty row block (N, 0, ...) as replicated,
+        # and the next call would compile the program again for it
+        self._data = self.mesh.put_rows(_advance(self.model, self._data, int(steps), self.mesh))
 
     def set_velocities(self, qvel) -> None:
         """Per-world generalized velocities (N, nv), e.g. a different throw in each world."""
