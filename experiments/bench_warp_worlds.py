@@ -155,7 +155,7 @@ def main(argv=None) -> None:
 
         wp.init()
         cache = Path(wp.config.kernel_cache_dir)   # a warm cache makes the first call load, not compile
-        result.update({"warp": version("warp-lang"), "mujoco_warp": version("mujoco-warp"),
+        result.update({"warp_version": version("warp-lang"), "mujoco_warp_version": version("mujoco-warp"),
                        "warp_cached_modules_at_start": len(list(cache.iterdir())) if cache.is_dir() else 0})
     for backend in args.backends:
         result[backend] = bench_backend(env, backend, args.worlds, args.steps, args.repeats, args.throw,

@@ -287,7 +287,7 @@ def _warp_versions() -> dict:
 
     wp.init()
     cache = Path(wp.config.kernel_cache_dir)
-    return {"warp": version("warp-lang"), "mujoco_warp": version("mujoco-warp"),
+    return {"warp_version": version("warp-lang"), "mujoco_warp_version": version("mujoco-warp"),
             "warp_cached_modules_at_start": len(list(cache.iterdir())) if cache.is_dir() else 0}
 
 
