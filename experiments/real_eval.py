@@ -1,7 +1,7 @@
 """Convert a real capture without ground truth and score it the paper's way (its table 4).
 
     python -m experiments.real_eval CAPTURE [--masks FOLDER|auto|files] [--box x0 y0 z0 x1 y1 z1]
-        [--box-prompt FILE] [--hold-out-every 8] [--out DIR] [--name NAME] [--width W]
+        [--box-prompt FILE] [--prompts FILE] [--hold-out-every 8] [--out DIR] [--name NAME] [--width W]
         [--up ...] [--scale ...] [--known-size ID=METRES] [--metric] [--config.STAGE.FIELD VALUE ...]
 
 1. Every ``--hold-out-every``-th image in file (name) order is held out. A working copy of
@@ -10,6 +10,11 @@
    ``--box`` (axis-aligned, capture frame) or ``--box-prompt`` (a JSON like the fox fixture's
    ``box_prompt.json``) makes instance masks (``phirie_jax.observe.box_prompt``) for the
    training views (then ``--masks`` defaults to ``files``) and for the held-out ones (scoring).
+   ``--prompts`` (a ``prompts.json``-format file of boxes or clicks in training photos, e.g.
+   ``experiments/prompts/fox.json``) is passed to ``phirie convert`` as its prompts
+   (``observe.prompts``); the held-out masks are then the prompts' objects rendered at the
+   held-out cameras (the Gaussians each prompt took, ``observe/prompts.npz``, as one feature
+   channel each, like the training views' masks).
 2. Visual cost of conversion at the held-out photos: PSNR/SSIM of (a) the converted initial
    state — ``background.ply`` plus every accepted object's ``visual.ply`` placed at its
    ``pose`` — seen by the held-out camera moved into the output's world frame (manifest
@@ -156,12 +161,13 @@ def converted_scene(out_dir: Path, manifest: dict):
     from kernels.gaussians import Gaussians, Sim3, concatenate, transform_gaussians
     from phirie_jax import layout
     from phirie_jax.io.ply import read_gaussian_ply
+    from phirie_jax.manifest import is_kept
 
     background = read_gaussian_ply(out_dir / layout.BACKGROUND)
     degree_k = background.sh.shape[1]
     parts, placed = [background.to_kernel()], {}
     for obj in manifest.get("objects") or []:
-        if obj.get("status") != "accepted" or not obj.get("visual"):
+        if not is_kept(obj) or not obj.get("visual"):
             continue
         splats = read_gaussian_ply(layout.resolve(out_dir, obj["visual"]))
         sh = np.zeros((splats.num, degree_k, 3), np.float32)
@@ -187,10 +193,40 @@ def instance_mask(source: dict, camera: Camera, instance_id: int, width: int | N
     return labels == instance_id
 
 
-def held_out_masks(args, capture: Path, scene, held_out: list[Camera], boxes: list[BoxPrompt]) -> dict:
-    """Held-out view name → (H, W) labels, from the box prompt, else the given mask folder."""
+def prompt_held_out_masks(out: Path, scene, held_out: list[Camera]) -> dict:
+    """Held-out view name → (H, W) labels of the prompts' objects: the Gaussians each prompt took
+    (``observe/prompts.npz``, rows of the capture's PLY) rendered with one feature channel per
+    prompt at the held-out cameras, labelled like the conversion's own prompt masks."""
+    from phirie_jax.observe.config import ObserveConfig
+    from phirie_jax.observe.prompt_lift import PROMPT_RECORD, owner_labels
+    from phirie_jax.render import render
+
+    path = out / PROMPT_RECORD
+    if not path.is_file():
+        return {}
+    with np.load(path) as data:
+        rows, owner = data["rows"], data["owner"]
+    gaussians = scene.require_gaussians()
+    ids = sorted(int(k) for k in np.unique(owner))
+    features = np.zeros((gaussians.num, len(ids)), np.float32)
+    features[rows, np.searchsorted(ids, owner)] = 1.0
+    config = ObserveConfig().prompts
+    found = {}
+    for cam in held_out:
+        result = render(gaussians.to_kernel(), cam, features=features)
+        found[cam.name] = owner_labels(np.asarray(result.features, np.float64), np.asarray(result.alpha, np.float64),
+                                       ids, config).astype(np.int64)
+    return found
+
+
+def held_out_masks(args, capture: Path, scene, held_out: list[Camera], boxes: list[BoxPrompt],
+                   out: Path | None = None) -> dict:
+    """Held-out view name → (H, W) labels, from the box prompt, the prompts' objects, else the
+    given mask folder."""
     from phirie_jax.observe.masks import read_label_png
 
+    if args.prompts is not None:
+        return prompt_held_out_masks(out, scene, held_out)
     if boxes:
         return {held_out[v].name: labels.astype(np.int64) for v, labels in
                 box_masks(scene.require_gaussians(), held_out, boxes) if not isinstance(labels, str)}
@@ -251,7 +287,18 @@ def evaluate(args, rest: list[str]) -> dict:
         boxes.append(BoxPrompt.from_corners(1, args.box))
     if args.box_prompt is not None:
         boxes.append(read_prompt(args.box_prompt))
-    masks = args.masks or ("files" if boxes or scene.masks is not None else "auto")
+    prompts = ()
+    if args.prompts is not None:
+        from phirie_jax.observe.prompts import read_prompts_file
+
+        prompts = tuple(read_prompts_file(args.prompts))
+        hidden = {c.name for c in held_out} | {Path(c.name).stem for c in held_out}
+        for p in prompts:
+            if p.image in hidden:
+                raise SystemExit(f"{args.prompts}: prompt on {p.image}, a held-out view (expected a training photo)")
+        if boxes or args.masks:
+            raise SystemExit("--prompts is a mask source of its own (expected no --box, --box-prompt or --masks)")
+    masks = args.masks or (None if prompts else "files" if boxes or scene.masks is not None else "auto")
 
     work = Path(tempfile.mkdtemp(prefix="real_eval_"))
     out = Path(args.out) if args.out else work / "out"
@@ -260,6 +307,7 @@ def evaluate(args, rest: list[str]) -> dict:
     result: dict = {"capture": str(capture), "held_out": [c.name for c in held_out],
                     "training_views": len(training), "masks": str(masks),
                     "boxes": [{"id": b.id, "lower": b.lower, "upper": b.upper, "rotation": b.rotation} for b in boxes],
+                    "prompts": [p.as_json() for p in prompts],
                     "frame_options": dataclasses.asdict(frame_options), "out": str(out)}
     try:
         copy = working_copy(capture, held_out, work / "capture")
@@ -269,7 +317,8 @@ def evaluate(args, rest: list[str]) -> dict:
             result["box_masks_s"] = round(time.perf_counter() - t0, 2)
         t0 = time.perf_counter()
         try:
-            manifest = run_convert(copy, out, config, masks=masks, frame=frame_options)
+            manifest = run_convert(copy, out, config, masks=masks, frame=frame_options, prompts=prompts,
+                                   allow_outside_paths=True)   # the working copy links the capture's files
             result["convert"] = {"ok": True, "wall_s": round(time.perf_counter() - t0, 2)}
         except Exception as err:  # noqa: BLE001 — recorded: the source is still scored
             result["convert"] = {"ok": False, "wall_s": round(time.perf_counter() - t0, 2),
@@ -278,7 +327,7 @@ def evaluate(args, rest: list[str]) -> dict:
             manifest = None
 
         sources = scene.require_gaussians().to_kernel()
-        eval_masks = held_out_masks(args, capture, scene, held_out, boxes)
+        eval_masks = held_out_masks(args, capture, scene, held_out, boxes, out)
         sim3 = capture_to_world(manifest or {})
         converted, placed = (converted_scene(out, manifest) if manifest and (out / "background.ply").is_file()
                              else (None, {}))
@@ -305,8 +354,10 @@ def evaluate(args, rest: list[str]) -> dict:
         frame = (manifest or {}).get("frame") or {}
         result["frame"] = {k: frame.get(k) for k in ("capture_to_world", "up_source", "scale_source",
                                                      "scale_uncertainty")} if frame else None
-        result["instances"] = [{k: i.get(k) for k in ("id", "views", "num_points", "bounds")}
+        result["instances"] = [{k: i.get(k) for k in ("id", "category", "views", "num_points", "bounds")}
                                for i in (manifest or {}).get("instances") or []]
+        if prompts:
+            result["prompt_lift"] = ((manifest or {}).get("observe") or {}).get("prompts")
         result["objects"] = [object_row(o, ious.get(int(o["id"])), frame) for o in (manifest or {}).get("objects") or []]
         result["timings"] = (manifest or {}).get("timings")
     finally:
@@ -348,6 +399,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--box", type=float, nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                         help="axis-aligned box prompt (capture frame) for instance 1")
     parser.add_argument("--box-prompt", type=Path, default=None, help="JSON box prompt (id, lower, upper, rotation)")
+    parser.add_argument("--prompts", type=Path, default=None, help="prompts.json-format file: boxes or clicks in "
+                                                                  "training photos (phirie convert --prompt)")
     parser.add_argument("--hold-out-every", type=int, default=8)
     parser.add_argument("--out", type=Path, default=None, help="conversion output (default: a temporary folder)")
     parser.add_argument("--name", default=None, help="results name (default: the capture folder's name)")

@@ -38,6 +38,7 @@ from phirie_jax.ranges import (
 )
 
 Scene = Annotated[Path, tyro.conf.Positional]
+Prompts = Annotated[tuple[str, ...], tyro.conf.UseAppendAction]   # --prompt A --prompt B: both kept
 
 
 def info(scene: Scene, gaussians: Path | None = None, surface: Path | None = None,
@@ -250,7 +251,7 @@ def _print_timings(manifest: dict) -> None:
 
 def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            observe_width: int | None = None, config: ObserveConfig = ObserveConfig(),
+            observe_width: int | None = None, prompt: Prompts = (), config: ObserveConfig = ObserveConfig(),
             allow_outside_paths: bool = False) -> None:
     """Scene Observation alone (after the frame: up and metres): masks → first-hit lifting onto
     the surface → voxel association into object instances (manifest.json `instances`,
@@ -267,12 +268,16 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         frame: the capture's up and scale, when known (else estimated and recorded).
         observe_width: observation's working width in pixels, whatever the photos' size
             (same as --config.working-width; 0 = the photos' size).
+        prompt: one object, pointed at in one photo: IMAGE:X0,Y0,X1,Y1 (a box) or IMAGE:U,V (a
+            click) in the pixel coordinates an image viewer shows, optionally =LABEL (its
+            category); IMAGE is the photo's name (0007.jpg) or stem. Repeat for more objects;
+            default: the scene's prompts.json, if any.
         config: observation parameters (defaults: the paper's numbers).
         allow_outside_paths: accept cameras that name images outside the scene folder (refused by default).
     """
     config = _with_observe_width(config, observe_width)
     manifest = _run_stages(scene, out, ConvertConfig(observe=config), masks, gaussians, surface, frame,
-                           ("observe",), allow_outside_paths)
+                           ("observe",), allow_outside_paths, prompt)
     _print_frame(manifest)
     _print_instances(manifest)
     _print_outcome(manifest)
@@ -281,8 +286,8 @@ def observe(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
 
 def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path | None = None,
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
-            observe_width: int | None = None, mass: tuple[str, ...] = (), config: ConvertConfig = ConvertConfig(),
-            allow_outside_paths: bool = False) -> None:
+            observe_width: int | None = None, prompt: Prompts = (), mass: tuple[str, ...] = (),
+            config: ConvertConfig = ConvertConfig(), allow_outside_paths: bool = False) -> None:
     """Scene → interactive scene: frame (metres, +z up) → observe → objects → physics →
     background, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
     Gaussians, checks; collision, scene.xml, URDFs, drop tests; background.ply with the objects
@@ -297,6 +302,10 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
         frame: the capture's up and scale, when known (else estimated and recorded).
         observe_width: observation's working width in pixels, whatever the photos' size
             (same as --config.observe.working-width; 0 = the photos' size).
+        prompt: one object, pointed at in one photo: IMAGE:X0,Y0,X1,Y1 (a box) or IMAGE:U,V (a
+            click) in the pixel coordinates an image viewer shows, optionally =LABEL (its
+            category); IMAGE is the photo's name (0007.jpg) or stem. Prompt k is object k. Repeat
+            for more objects; default: the scene's prompts.json, if any (`phirie view SCENE` writes it).
         mass: ID=KG, an object's mass (repeatable: --mass 3=0.35 --mass 5=0.12); others get their
             category's (a mask's or a prompt's label) or the paper's 0.3 kg.
         config: every stage's parameters (defaults: the paper's numbers).
@@ -307,7 +316,7 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     if mass:
         config = dataclasses.replace(config, physics=dataclasses.replace(
             config.physics, object_masses=config.physics.object_masses + _object_masses(mass)))
-    manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None, allow_outside_paths)
+    manifest = _run_stages(scene, out, config, masks, gaussians, surface, frame, None, allow_outside_paths, prompt)
     _print_frame(manifest)
     _print_instances(manifest)
     _print_objects(manifest)
@@ -426,7 +435,7 @@ def _with_observe_width(config: ObserveConfig, observe_width: int | None) -> Obs
 
 
 def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians, surface, frame: FrameConfig,
-                stages: tuple[str, ...] | None, allow_outside_paths: bool) -> dict:
+                stages: tuple[str, ...] | None, allow_outside_paths: bool, prompts: tuple[str, ...] = ()) -> dict:
     """``run_convert`` showing its progress (``progress.display_for``): bars on a terminal, else a
     line as each stage and long step starts and ends, with elapsed times. After a whole conversion,
     ``report.html`` (``config.report``; a failure to write it is one line, not the run's failure)."""
@@ -436,7 +445,7 @@ def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians,
     from phirie_jax.progress import display_for, showing, task
 
     options = dict(masks=masks, gaussians=gaussians, surface=surface, frame=frame, stages=stages,
-                   allow_outside_paths=allow_outside_paths)
+                   allow_outside_paths=allow_outside_paths, prompts=prompts)
     start = time.perf_counter()
     with showing(display_for()):
         manifest = run_convert(scene, out, config, **options)
@@ -635,9 +644,11 @@ def view(out_dir: Annotated[Path, tyro.conf.Positional],
     capture's cameras and a live MuJoCo simulation. Click an object to shoot it, drag it to push
     it; play / pause / reset, collision parts, completed meshes, instance colours, the source
     capture and each object's record are in the panel. Runs until Ctrl-C; no GPU needed.
+    On a scene folder (not converted yet): its Gaussians and cameras; clicking an object adds a
+    prompt to SCENE/prompts.json (the one file it writes there), which `phirie convert` reads.
 
     Args:
-        out_dir: a `phirie convert` output folder.
+        out_dir: a `phirie convert` output folder, or a scene folder to pick objects in.
         settings: the viewer's settings (--port, --host, --no-playing, ...).
     """
     import time
@@ -648,7 +659,14 @@ def view(out_dir: Annotated[Path, tyro.conf.Positional],
         settings = dataclasses.replace(settings)
     except ConfigValueError as err:
         raise OptionError("--" + err.field.replace("_", "-"), f"expected {err.expected}", err.shown) from None
-    viewer = Viewer(out_dir, settings)
+    from phirie_jax.info import is_converted
+
+    if is_converted(out_dir):
+        viewer = Viewer(out_dir, settings)
+    else:
+        from phirie_jax.view.capture import CaptureViewer
+
+        viewer = CaptureViewer(out_dir, settings)
     print(f"phirie view: {viewer.url} (Ctrl-C to stop)", flush=True)
     try:
         while True:

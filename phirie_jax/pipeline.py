@@ -85,6 +85,7 @@ class Run:
     frame_config: FrameConfig = FrameConfig()
     masks: str | Path | None = None
     frame: SceneFrame | None = None
+    prompts: tuple = ()          # checked prompts (observe.prompts.Prompt): the mask source when given
 
     @functools.cached_property
     def scene(self) -> SceneInput:
@@ -141,14 +142,16 @@ def _observe(run: Run) -> Run:
     ``KNOWN_SIZE_ROUNDS`` times; the frame recorded is the one the instances were observed at)."""
     from phirie_jax.observe.stage import run_observe
 
-    run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=run.scene)
+    run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=run.scene,
+                prompts=run.prompts)
     if run.frame_config.known_size is None:
         return run
     for _ in range(KNOWN_SIZE_ROUNDS):  # an instance observed at a wrong scale measures short: again
         rescaled = _known_size(run)
         if abs(rescaled.frame.scale / run.frame.scale - 1) <= KNOWN_SIZE_TOLERANCE:
             return rescaled
-        run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=rescaled.scene)
+        run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=rescaled.scene,
+                    prompts=run.prompts)
         run = rescaled
     return run
 
@@ -256,7 +259,7 @@ def refuse_lone_ply(scene_path: Path) -> None:
 
 
 def check_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
-                 stages: tuple[str, ...] | None, frame: FrameConfig = FrameConfig()) -> None:
+                 stages: tuple[str, ...] | None, frame: FrameConfig = FrameConfig(), prompts: tuple = ()) -> None:
     """What the stages to run need from the inputs, checked before the output folder is touched;
     the errors are the ones the stages would raise later."""
     def runs(name: str) -> bool:
@@ -273,23 +276,44 @@ def check_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | N
     if runs("background") and external is not None and not Path(external).is_dir():
         raise SceneInputError(external, "targets", "not a folder (expected <image stem>.png files)")
     if runs("observe"):
-        _check_known_size(scene, masks, frame)
+        _check_known_size(scene, masks, frame, prompts)
 
 
-def _check_known_size(scene: SceneInput, masks: str | Path | None, frame: FrameConfig) -> None:
+def scene_prompts(scene: SceneInput, masks: str | Path | None, given, stages: tuple[str, ...] | None
+                  ) -> tuple[tuple, Path | None]:
+    """(checked prompts, the prompts.json they came from or None): ``--prompt`` values (with no
+    ``--masks``), else the scene folder's ``prompts.json`` when no ``--masks`` is given (with one,
+    the file is left out and the run says so). Checked against the cameras before any work."""
+    from phirie_jax.errors import OptionError
+    from phirie_jax.observe import prompts as prompts_mod
+
+    if stages is not None and "observe" not in stages:
+        return (), None
+    if given and masks is not None:
+        raise OptionError("--prompt", f"and --masks {masks} are two mask sources (expected one of them)")
+    if masks is not None:
+        if (scene.root / prompts_mod.PROMPTS_FILE).is_file():
+            print(f"phirie: note: {scene.root / prompts_mod.PROMPTS_FILE} is not used (--masks {masks} given)",
+                  file=sys.stderr, flush=True)
+        return (), None
+    return prompts_mod.scene_prompts(scene.root, scene.require_cameras(), given)
+
+
+def _check_known_size(scene: SceneInput, masks: str | Path | None, frame: FrameConfig, prompts: tuple = ()) -> None:
     """``--known-size ID=M``: with mask files (their values are the instance ids) the id is checked
     now; otherwise observation numbers the instances, and the run says at the start that the id
     is checked after it."""
     known = frame.known_size_of()
     if known is None:
         return
-    ids = file_mask_ids(scene, masks)
+    ids = set(range(1, len(prompts) + 1)) if prompts else file_mask_ids(scene, masks)
     if ids is None:
         print(f"phirie: note: --known-size {frame.known_size}: instance {known[0]} is checked after observation "
               "(its instance ids are known only then)", file=sys.stderr, flush=True)
     elif known[0] not in ids:
         listed = ", ".join(map(str, sorted(ids))) or "none"
-        raise SceneInputError(scene.root / "masks", "--known-size", f"no instance {known[0]} in the mask files "
+        where, what = ("--prompt", "prompts") if prompts else (scene.root / "masks", "mask files")
+        raise SceneInputError(where, "--known-size", f"no instance {known[0]} in the {what} "
                               f"(their instance ids: {listed})")
 
 
@@ -349,12 +373,14 @@ def _inputs(scene: SceneInput, masks: str | Path | None, config: ConvertConfig) 
 
 
 def conversion_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
-                      stages: tuple[str, ...] | None, frame: FrameConfig) -> dict:
+                      stages: tuple[str, ...] | None, frame: FrameConfig, prompts: tuple = ()) -> dict:
     """The ``inputs`` record of this conversion: its input files' and options' hashes. The
     collision's worker count decides how fast, not what, so it is left out of the options."""
     options = {"config": dataclasses.replace(config, physics=dataclasses.replace(config.physics, workers=0)),
                "frame": frame, "stages": None if stages is None else sorted(stages),
                "masks": masks if masks in (None, "auto", "files") else "folder"}
+    if prompts:
+        options["prompts"] = [p.as_json() for p in prompts]
     extra = [masks if masks not in (None, "auto", "files") else None, config.background.targets.external]
     return provenance.inputs_record(scene, options, [Path(p) for p in extra if p is not None])
 
@@ -362,12 +388,13 @@ def conversion_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Pat
 def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfig = ConvertConfig(),
                 masks: str | Path | None = None, gaussians: str | Path | None = None,
                 surface: str | Path | None = None, frame: FrameConfig = FrameConfig(), progress=None,
-                stages: tuple[str, ...] | None = None, allow_outside_paths: bool = False) -> dict:
+                stages: tuple[str, ...] | None = None, allow_outside_paths: bool = False, prompts=()) -> dict:
     """Run the stages of ``STAGES`` (all, or those named in ``stages``; the frame stage always
     runs) on ``scene_dir``; returns the final manifest (a dict). ``progress(stage)`` is called
     as each stage starts (and each is a ``progress.task``: shown by a display the caller
     installed). ``allow_outside_paths``: cameras may name images outside the scene folder
-    (refused by default)."""
+    (refused by default). ``prompts``: ``--prompt`` values (``IMAGE:X0,Y0,X1,Y1`` or ``IMAGE:U,V``,
+    or ``observe.prompts.Prompt``s); without them and ``masks``, the scene's ``prompts.json``."""
     start = time.perf_counter()
     frame.checked()
     out_dir = Path(out_dir)
@@ -376,10 +403,11 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
     check_output_folder(out_dir, scene_root)
     with outside_paths_allowed(allow_outside_paths):
         scene = load_scene(scene_dir, gaussians=gaussians, surface=surface)
-        run = Run(scene, out_dir, config, merged(scene_frame_config(scene.root), frame), masks)
-        check_inputs(scene, config, masks, stages, run.frame_config)
-        check_inputs_outside(out_dir, _inputs(scene, masks, config))
-        inputs = conversion_inputs(scene, config, masks, stages, frame)
+        checked, prompts_file = scene_prompts(scene, masks, tuple(prompts), stages)
+        run = Run(scene, out_dir, config, merged(scene_frame_config(scene.root), frame), masks, prompts=checked)
+        check_inputs(scene, config, masks, stages, run.frame_config, checked)
+        check_inputs_outside(out_dir, _inputs(scene, masks, config) + [("the prompts", prompts_file)])
+        inputs = conversion_inputs(scene, config, masks, stages, frame, checked)
         created = _missing_root(out_dir)
         with locked(out_dir):
             check_output_folder(out_dir, scene_root)   # as this run holds it

@@ -103,8 +103,6 @@ def box_labels(depth: np.ndarray, alpha: np.ndarray, camera: Camera, boxes: Sequ
                config: BoxMaskConfig = BoxMaskConfig()) -> np.ndarray:
     """(H, W) uint16 labels of one view from its rendered depth (H, W) (alpha-normalized, camera z)
     and alpha (H, W): the first box holding each opaque pixel's 3D point, cleaned per id."""
-    import cv2
-
     height, width = camera.height, camera.width
     if depth.shape != (height, width) or alpha.shape != (height, width):
         raise ValueError(f"depth {depth.shape} and alpha {alpha.shape}: expected ({height}, {width}) "
@@ -119,20 +117,30 @@ def box_labels(depth: np.ndarray, alpha: np.ndarray, camera: Camera, boxes: Sequ
     for box in boxes:
         inside = box.contains(points) & (flat[where] == 0)  # the first box given keeps a pixel
         flat[where[inside]] = box.id
-    labels = flat.reshape(height, width)
+    return clean_labels(flat.reshape(height, width), [b.id for b in boxes], config.open_px, config.close_px,
+                        config.min_component)
+
+
+def clean_labels(labels: np.ndarray, ids: Sequence[int], open_px: int, close_px: int, min_component: float
+                 ) -> np.ndarray:
+    """(H, W) uint16 ``labels`` with each id's pixels opened (specks of floaters and needles) and
+    closed (pinholes) by square kernels of these sides (≤ 1: not), and its pieces smaller than
+    ``min_component`` × its largest dropped; where cleaned ids overlap, the first in ``ids`` wins."""
+    import cv2
+
     out = np.zeros_like(labels)
-    for box in boxes:
-        binary = (labels == box.id).astype(np.uint8)
-        if config.open_px > 1:
-            binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((config.open_px,) * 2, np.uint8))
-        if config.close_px > 1:
-            binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, np.ones((config.close_px,) * 2, np.uint8))
-        if config.min_component > 0 and binary.any():
+    for ident in ids:
+        binary = (labels == ident).astype(np.uint8)
+        if open_px > 1:
+            binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((open_px,) * 2, np.uint8))
+        if close_px > 1:
+            binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, np.ones((close_px,) * 2, np.uint8))
+        if min_component > 0 and binary.any():
             count, pieces, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
             area = stats[1:, cv2.CC_STAT_AREA]
-            keep = np.flatnonzero(area >= config.min_component * area.max()) + 1
+            keep = np.flatnonzero(area >= min_component * area.max()) + 1
             binary = np.isin(pieces, keep).astype(np.uint8)
-        out[(binary > 0) & (out == 0)] = box.id
+        out[(binary > 0) & (out == 0)] = ident
     return out
 
 

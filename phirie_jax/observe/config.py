@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from phirie_jax.observe.prompt_config import PromptConfig
 from phirie_jax.ranges import (
     ANGLE_DEG,
     AT_LEAST_ONE,
@@ -220,6 +221,7 @@ class ObserveConfig:
             "mesh" (require the scan mesh) or "splats" (always build it from the Gaussians).
         surface: splat-derived surface settings.
         auto: automatic mask settings.
+        prompts: how prompts (a box or a click in a photo) become objects.
     """
 
     voxel: float = 0.02
@@ -236,6 +238,7 @@ class ObserveConfig:
     surface_source: str = "auto"
     surface: SurfaceConfig = SurfaceConfig()
     auto: AutoMaskConfig = AutoMaskConfig()
+    prompts: PromptConfig = PromptConfig()
 
     def __post_init__(self):
         if self.surface_source not in ("auto", "mesh", "splats"):

@@ -18,7 +18,9 @@ Outputs (paths relative to ``out_dir``):
   ``pixels`` (V,) int64 mask area, ``bboxes`` (V, 4) int32 x0 y0 x1 y1 (inclusive),
   ``lifted`` (V,) int32 points lifted from that view.
 - ``observe/masks/<image stem>.png``: the per-view masks when they were made here
-  (``auto``), 16-bit instance ids like mask files.
+  (``auto``, ``prompts``), 16-bit instance ids like mask files.
+- ``observe/prompts.npz``: with prompts, the scene's Gaussians each prompt took
+  (``observe.prompt_lift.PROMPT_RECORD``).
 - ``observe/surface.ply``: the splat-derived surface, when one was built.
 """
 
@@ -64,13 +66,15 @@ def working_camera(camera: Camera, working_width: int) -> Camera:
     return camera.scaled(working_width / camera.width)
 
 
-def render_depths(scene: SceneInput, config: ObserveConfig, gaussians=None
+def render_depths(scene: SceneInput, config: ObserveConfig, gaussians=None, shared=None
                   ) -> tuple[list[np.ndarray], list[Camera], list[dict]]:
     """Rendered depth (alpha ≥ min_alpha, else 0) at every ``view_stride``-th camera, and failures.
 
     Each camera is rendered at ``config.working_width`` (``working_camera``); the returned
     cameras are the ones rendered. ``gaussians``: the host Gaussians to render (default the
-    scene's)."""
+    scene's). ``shared``: another user of the same renders (prompt masks,
+    ``observe.prompt_lift.PromptMasks``): its ``features`` (N, F) ride along and ``take(view,
+    output)`` sees each render."""
     from phirie_jax.render import render
 
     gaussians = (gaussians if gaussians is not None else scene.require_gaussians()).to_kernel()
@@ -81,19 +85,21 @@ def render_depths(scene: SceneInput, config: ObserveConfig, gaussians=None
         if problem is None:
             cam = working_camera(cam, config.working_width)
             try:
-                out = render(gaussians, cam)
+                out = render(gaussians, cam, features=None if shared is None else shared.features)
             except RuntimeError as err:  # e.g. the scene does not fit the renderer's buffers
                 problem = f"render failed: {err}"
         if problem:
             failures.append({"view": view, "path": cam.name, "reason": problem})
             continue
+        if shared is not None:
+            shared.take(view, out)
         alpha = np.asarray(out.alpha)
         depths.append(np.where(alpha >= config.surface.min_alpha, np.asarray(out.depth_normalized), 0.0))
         cams.append(cam)
     return depths, cams, failures
 
 
-def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tuple[SurfaceMesh, dict]:
+def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path, shared=None) -> tuple[SurfaceMesh, dict]:
     """The surface to lift onto, and a record of where it came from.
 
     A splat-derived surface is fused from the depth of the Gaussians that pass the floater
@@ -128,7 +134,8 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
         raise SceneInputError(scene.root, "surface", f"every Gaussian was left out as a floater ({floaters}); "
                               "expected some opaque ones (see observe.surface.floaters)")
     t0 = time.perf_counter()
-    depths, cams, failures = render_depths(scene, config, g)
+    shared = shared if shared is not None and shared.renders(g) else None
+    depths, cams, failures = render_depths(scene, config, g, shared)
     render_s = time.perf_counter() - t0
     if not depths:
         raise SceneInputError(scene.root, "surface", "no view could be rendered to build a splat-derived surface")
@@ -151,10 +158,14 @@ def scene_surface(scene: SceneInput, config: ObserveConfig, out_dir: Path) -> tu
 
 
 def mask_views(scene: SceneInput, masks: str | Path, raycaster: Raycaster,
-               config: ObserveConfig, record: dict, up: np.ndarray | None = None, frame_record: dict | None = None):
+               config: ObserveConfig, record: dict, up: np.ndarray | None = None, frame_record: dict | None = None,
+               prompt_masks=None):
     """The per-view masks of the chosen source (an iterator) and the source's name; ``up`` (3,)
     is the scene's (automatic masks look for supports under it; default +z) and ``frame_record``
-    the manifest's ``frame`` (its support plane seeds automatic discovery's)."""
+    the manifest's ``frame`` (its support plane seeds automatic discovery's). ``masks`` "prompts":
+    ``prompt_masks``, the prompts lifted to objects (``observe.prompt_lift.PromptMasks``)."""
+    if masks == "prompts":
+        return prompt_masks.views(), "prompts"
     if masks == "files":
         if scene.masks is not None:
             return file_masks(scene.cameras, scene.masks), "files"
@@ -314,7 +325,7 @@ def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Rayc
             continue
         with manifest.timed("observe.lift"):
             lifted.mask_paths[item.view] = (_write_mask(out_dir, cameras[item.view], item.labels)
-                                            if source == "auto" else item.path)
+                                            if source in ("auto", "prompts") else item.path)
             found, dropped = lift_view(raycaster, cameras[item.view], item, config)
         lifted.proposals += found
         lifted.rejected += dropped
@@ -386,11 +397,13 @@ def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dic
 
 
 def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
-                masks: str | Path | None = None, scene: SceneInput | None = None) -> dict:
+                masks: str | Path | None = None, scene: SceneInput | None = None, prompts=()) -> dict:
     """Run Scene Observation on a scene folder; write ``out_dir`` (see the module docstring).
 
     masks: "files" (mask PNGs or ScanNet++ annotations), "auto", or a folder of an external
     segmenter's per-image PNG + JSON; None = "files" when the scene has masks, else "auto".
+    prompts: checked prompts (``observe.prompts.Prompt``; with masks None) make the masks:
+    prompt k is instance k.
     Returns the manifest as a dict. Raises ``SceneInputError`` for unusable input as a
     whole; a failing view or instance is recorded in the manifest and the rest goes on.
     """
@@ -400,14 +413,26 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
     with manifest.timed("observe"):
         scene = scene or load_scene(scene_dir)
         cameras = scene.require_cameras()
+        if prompts:
+            if masks is not None:
+                raise ValueError(f"prompts and masks {masks!r}: expected one mask source")
+            masks = "prompts"
         if masks is None:
             masks = "files" if (scene.masks is not None or scene.segments_anno is not None) else "auto"
+        record: dict = {}
+        prompt_masks = None
+        if masks == "prompts":
+            from phirie_jax.observe.prompt_lift import PromptMasks
+
+            with manifest.timed("observe.prompts"):
+                prompt_masks = PromptMasks.lift(scene, prompts, config, record, out_dir)
         with manifest.timed("observe.surface"):
-            surface, surface_record = scene_surface(scene, config, out_dir)
+            surface, surface_record = scene_surface(scene, config, out_dir, prompt_masks)
             raycaster = Raycaster(surface.vertices, surface.faces, config.working_width)
-        record: dict = {"surface": surface_record}
+        record["surface"] = surface_record
         with manifest.timed("observe.masks"):
-            views, source = mask_views(scene, masks, raycaster, config, record, manifest.up(), manifest.get("frame"))
+            views, source = mask_views(scene, masks, raycaster, config, record, manifest.up(), manifest.get("frame"),
+                                       prompt_masks)
         lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
         instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest, raycaster)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),
