@@ -1,9 +1,10 @@
 """``phirie convert-many``: many scenes converted as Ray tasks, one output folder each.
 
 The driver names the scenes (``scene_names``: their folder names, made unique), checks the root
-and every scene's output folder before any work (``io.output_folder``'s rules), takes the root's
-lock (one ``convert-many`` per root at a time), connects to Ray (``connect``: a local instance
-by default, or a running cluster) and submits one task per scene (``scene_task.convert_scene``).
+and every scene's output folder before any work (``io.output_folder``'s rules), connects to Ray
+(``connect``: a local instance by default, or a running cluster), checks what the tasks ask for
+against the cluster's resources, takes the root's lock (one ``convert-many`` per root at a time)
+and submits one task per scene (``scene_task.convert_scene``).
 Each task holds ``cpus`` CPUs, a GPU when the cluster has one, and the ``resources`` asked for;
 it runs in a fresh worker process (``max_calls=1``: its peak memory is its own, no state is
 shared between scenes) and is retried up to ``retries`` times when its worker dies or it raises
@@ -112,10 +113,12 @@ def check_root(root: Path, scenes: Sequence[Path], names: Sequence[str]) -> None
 
 
 def connect(ray, placement: Placement) -> None:
-    """``ray.init``: a local instance (``placement.workers`` CPUs, no dashboard, quiet logs) or the
-    cluster at ``placement.address``."""
+    """``ray.init``: a local instance (``placement.workers`` CPUs, no dashboard, quiet logs, no usage
+    statistics sent unless ``RAY_USAGE_STATS_ENABLED`` says otherwise) or the cluster at
+    ``placement.address``."""
     quiet = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR}
     if placement.address is None:
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # a run on this machine reports to no one
         ray.init(address=LOCAL, num_cpus=placement.workers or os.cpu_count() or 1, **quiet)
     else:
         try:
@@ -203,16 +206,16 @@ def convert_many(scenes: Sequence[Path], root: Path, job: SceneJob, placement: P
     check_root(root, scenes, names)
     jobs = [dataclasses.replace(job, name=n, scene=s.absolute(), out=(root / n).absolute(), cpus=placement.cpus)
             for n, s in zip(names, scenes)]
-    with locked(root):
-        records = [{"name": j.name, "scene": str(j.scene), "out": str(j.out), "status": "pending"} for j in jobs]
-        connect(ray, placement)
-        pending: dict = {}
-        try:
-            options = task_options(ray, placement)
-            meta = {"root": str(root.absolute()), "address": placement.address or LOCAL,
-                    "cluster": {k: v for k, v in ray.cluster_resources().items() if not k.startswith("node:")},
-                    "task": {k: options[k] for k in ("num_cpus", "num_gpus", "max_retries")} | {
-                        "resources": options.get("resources", {})}}
+    records = [{"name": j.name, "scene": str(j.scene), "out": str(j.out), "status": "pending"} for j in jobs]
+    connect(ray, placement)
+    pending: dict = {}
+    try:
+        options = task_options(ray, placement)   # refused before the root is created or taken
+        meta = {"root": str(root.absolute()), "address": placement.address or LOCAL,
+                "cluster": {k: v for k, v in ray.cluster_resources().items() if not k.startswith("node:")},
+                "task": {k: options[k] for k in ("num_cpus", "num_gpus", "max_retries")} | {
+                    "resources": options.get("resources", {})}}
+        with locked(root):
             remote = ray.remote(max_calls=1)(convert_scene)   # a fresh worker process per scene
             pending = {remote.options(name=f"phirie convert {j.name}", **options).remote(j): k
                        for k, j in enumerate(jobs)}
@@ -229,14 +232,14 @@ def convert_many(scenes: Sequence[Path], root: Path, job: SceneJob, placement: P
                 write_summary(root, records, {**meta, "seconds": None})
                 if on_end is not None:
                     on_end(records[k])
-        except BaseException:
-            for ref in pending:   # interrupted: the scenes not ended are stopped (their folders say so)
-                ray.cancel(ref, force=True)
-            raise
-        finally:
-            ray.shutdown()
-        seconds = round(time.perf_counter() - start, 2)
-        write_summary(root, records, {**meta, "seconds": seconds})
+            seconds = round(time.perf_counter() - start, 2)
+            write_summary(root, records, {**meta, "seconds": seconds})
+    except BaseException:
+        for ref in pending:   # interrupted: the scenes not ended are stopped (their folders say so)
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        ray.shutdown()
     counts = collections.Counter(r["status"] for r in records)
     return {"schema": SUMMARY_SCHEMA, **meta, "seconds": seconds, "counts": dict(sorted(counts.items())),
             "scenes": records}
