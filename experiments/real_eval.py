@@ -198,7 +198,7 @@ def prompt_held_out_masks(out: Path, scene, held_out: list[Camera]) -> dict:
     (``observe/prompts.npz``, rows of the capture's PLY) rendered with one feature channel per
     prompt at the held-out cameras, labelled like the conversion's own prompt masks."""
     from phirie_jax.observe.config import ObserveConfig
-    from phirie_jax.observe.prompt_lift import PROMPT_RECORD, owner_labels
+    from phirie_jax.observe.prompt_masks import PROMPT_RECORD, owner_labels
     from phirie_jax.render import render
 
     path = out / PROMPT_RECORD

@@ -422,7 +422,7 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
         record: dict = {}
         prompt_masks = None
         if masks == "prompts":
-            from phirie_jax.observe.prompt_lift import PromptMasks
+            from phirie_jax.observe.prompt_masks import PromptMasks
 
             with manifest.timed("observe.prompts"):
                 prompt_masks = PromptMasks.lift(scene, prompts, config, record, out_dir)

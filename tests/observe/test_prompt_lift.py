@@ -12,7 +12,8 @@ import pytest
 from phirie_jax.io.scene import load_scene
 from phirie_jax.observe.masks import read_label_png
 from phirie_jax.observe.prompt_config import PromptConfig
-from phirie_jax.observe.prompt_lift import PROMPT_RECORD, Solid, dominant_depth, find_support, fit_planes, grow
+from phirie_jax.observe.prompt_lift import Solid, dominant_depth, find_support, fit_planes, grow
+from phirie_jax.observe.prompt_masks import PROMPT_RECORD
 from phirie_jax.types import GaussianSplatData
 
 BOUNDS_TOL = 0.02     # m: an instance's box lies within this of its object's true box on every side...
