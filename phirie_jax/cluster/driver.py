@@ -3,8 +3,9 @@
 The driver names the scenes (``scene_names``: their folder names, made unique), checks the root
 and every scene's output folder before any work (``io.output_folder``'s rules), connects to Ray
 (``connect``: a local instance by default, or a running cluster), checks what the tasks ask for
-against the cluster's resources, takes the root's lock (one ``convert-many`` per root at a time)
-and submits one task per scene (``scene_task.convert_scene``).
+against the cluster's resources and submits one task per scene (``scene_task.convert_scene``),
+holding the root's lock (one ``convert-many`` per root at a time: an existing root is taken
+before Ray starts, a new one is created once the resources are checked).
 Each task holds ``cpus`` CPUs, a GPU when the cluster has one, and the ``resources`` asked for;
 it runs in a fresh worker process (``max_calls=1``: its peak memory is its own, no state is
 shared between scenes) and is retried up to ``retries`` times when its worker dies or it raises
@@ -18,6 +19,7 @@ Ray is an optional extra: ``import_ray`` says how to install it when it is missi
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import os
@@ -207,15 +209,20 @@ def convert_many(scenes: Sequence[Path], root: Path, job: SceneJob, placement: P
     jobs = [dataclasses.replace(job, name=n, scene=s.absolute(), out=(root / n).absolute(), cpus=placement.cpus)
             for n, s in zip(names, scenes)]
     records = [{"name": j.name, "scene": str(j.scene), "out": str(j.out), "status": "pending"} for j in jobs]
-    connect(ray, placement)
-    pending: dict = {}
-    try:
-        options = task_options(ray, placement)   # refused before the root is created or taken
-        meta = {"root": str(root.absolute()), "address": placement.address or LOCAL,
-                "cluster": {k: v for k, v in ray.cluster_resources().items() if not k.startswith("node:")},
-                "task": {k: options[k] for k in ("num_cpus", "num_gpus", "max_retries")} | {
-                    "resources": options.get("resources", {})}}
-        with locked(root):
+    with contextlib.ExitStack() as held:
+        taken = root.is_dir()
+        if taken:   # an existing root that another run holds is refused before Ray starts
+            held.enter_context(locked(root))
+        connect(ray, placement)
+        pending: dict = {}
+        try:
+            options = task_options(ray, placement)   # refused before a new root is created
+            meta = {"root": str(root.absolute()), "address": placement.address or LOCAL,
+                    "cluster": {k: v for k, v in ray.cluster_resources().items() if not k.startswith("node:")},
+                    "task": {k: options[k] for k in ("num_cpus", "num_gpus", "max_retries")} | {
+                        "resources": options.get("resources", {})}}
+            if not taken:
+                held.enter_context(locked(root))
             remote = ray.remote(max_calls=1)(convert_scene)   # a fresh worker process per scene
             pending = {remote.options(name=f"phirie convert {j.name}", **options).remote(j): k
                        for k, j in enumerate(jobs)}
@@ -234,12 +241,12 @@ def convert_many(scenes: Sequence[Path], root: Path, job: SceneJob, placement: P
                     on_end(records[k])
             seconds = round(time.perf_counter() - start, 2)
             write_summary(root, records, {**meta, "seconds": seconds})
-    except BaseException:
-        for ref in pending:   # interrupted: the scenes not ended are stopped (their folders say so)
-            ray.cancel(ref, force=True)
-        raise
-    finally:
-        ray.shutdown()
+        except BaseException:
+            for ref in pending:   # interrupted: the scenes not ended are stopped (their folders say so)
+                ray.cancel(ref, force=True)
+            raise
+        finally:
+            ray.shutdown()
     counts = collections.Counter(r["status"] for r in records)
     return {"schema": SUMMARY_SCHEMA, **meta, "seconds": seconds, "counts": dict(sorted(counts.items())),
             "scenes": records}

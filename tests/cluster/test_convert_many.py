@@ -31,7 +31,7 @@ from phirie_jax import layout
 from phirie_jax.cli import main
 from phirie_jax.manifest import Manifest
 from phirie_jax.synthetic import synthesize
-from tests.processes import kill_quietly, running, wait_for
+from tests.processes import running, wait_for
 
 pytest.importorskip("ray", reason="the cluster extra (pip install 'phirie_jax[cluster]') is not installed")
 
@@ -228,20 +228,3 @@ def test_a_rerun_converts_a_scene_whose_conversion_did_not_finish(many, tmp_path
     resumed = tmp_path / "root" / "shelf"
     assert {output: (resumed / output).read_bytes() for output in OUTPUTS} == before
     assert Manifest.load_or_create(resumed).unfinished() == {}
-
-
-def test_a_second_run_while_the_root_is_in_use_is_refused(many, tmp_path, capsys):
-    run, _, _ = many
-    root = tmp_path / "root"
-    hold = ("import sys, time\nfrom phirie_jax.io.output_folder import locked\n"
-            "with locked(sys.argv[1]):\n print('held', flush=True)\n time.sleep(60)")
-    holder = subprocess.Popen([sys.executable, "-c", hold, str(root)], stdout=subprocess.PIPE)
-    try:
-        assert holder.stdout.readline() == b"held\n"
-        assert main(["convert-many", run["scenes"][0], "--out", str(root), *CHEAP]) == 2
-        err = capsys.readouterr().err
-        assert err.startswith(f"phirie: error: --out {root}: in use by process {holder.pid} on ") and \
-            err.count("\n") == 1
-    finally:
-        kill_quietly(holder.pid)
-        holder.wait()

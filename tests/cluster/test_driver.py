@@ -8,6 +8,7 @@ import dataclasses
 import errno
 import json
 import shutil
+import subprocess
 import sys
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -25,6 +26,7 @@ from phirie_jax.io.scene import load_scene
 from phirie_jax.pipeline import ConvertConfig, conversion_inputs
 from phirie_jax.provenance import up_to_date
 from phirie_jax.synthetic import synthesize
+from tests.processes import kill_quietly
 
 
 @pytest.mark.parametrize("scenes, names", [
@@ -184,3 +186,21 @@ def test_a_scene_given_twice_is_refused(tmp_path, capsys):
     (tmp_path / "scene").mkdir()
     assert main(["convert-many", str(tmp_path / "scene"), str(tmp_path / "scene"), "--out", str(tmp_path / "root")]) == 2
     assert capsys.readouterr().err == f"phirie: error: {tmp_path / 'scene'}: given twice (expected each scene once)\n"
+
+
+def test_a_root_another_run_holds_is_refused_before_ray_starts(tmp_path, capsys):
+    pytest.importorskip("ray")
+    root = tmp_path / "root"
+    hold = ("import sys, time\nfrom phirie_jax.io.output_folder import locked\n"
+            "with locked(sys.argv[1]):\n print('held', flush=True)\n time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", hold, str(root)], stdout=subprocess.PIPE)
+    try:
+        assert holder.stdout.readline() == b"held\n"
+        assert main(["convert-many", str(tmp_path / "scene"), "--out", str(root)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"phirie: error: --out {root}: in use by process {holder.pid} on ") and \
+            err.count("\n") == 1
+        assert "ray" not in sys.modules or not sys.modules["ray"].is_initialized()
+    finally:
+        kill_quietly(holder.pid)
+        holder.wait()
