@@ -83,6 +83,8 @@ def pad_gaussians(gaussians: Gaussians, size: int) -> Gaussians:
     if size < n:
         raise ValueError(f"cannot pad {n} Gaussians down to {size}")
     extra = size - n
+    if extra == 0:  # nothing to append: no program (each shape of the appending compiles one)
+        return gaussians
 
     def pad(x, axis, value=0.0):
         x = jnp.asarray(x)
@@ -119,6 +121,8 @@ def _pad_features(features, n, bucket, dtype):
     if features is None:
         return jnp.zeros((bucket, 0), dtype)
     features = jnp.asarray(features, dtype)
+    if features.shape[-2] == bucket:  # already the bucket's size: nothing to append
+        return features
     pad_shape = features.shape[:-2] + (bucket - n, features.shape[-1])
     return jnp.concatenate([features, jnp.zeros(pad_shape, dtype)], axis=-2)
 

@@ -113,6 +113,15 @@ def fit_plane(points: np.ndarray, up: np.ndarray, config: BackgroundConfig, anch
     return plane, None
 
 
+BOX_SLACK = 1e-9  # metres around a prefilter box: its test never decides a point on its boundary
+
+
+def within_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Indices of the (N, 3) ``points`` inside the box [lo, hi] grown by ``BOX_SLACK``: a cheap
+    prefilter whose survivors then take the exact test (the box holds every point that can pass it)."""
+    return np.flatnonzero(np.all((points >= lo - BOX_SLACK) & (points <= hi + BOX_SLACK), axis=1))
+
+
 def _raster(xy: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool grid with the cells that contain any of the points (outside points dropped)."""
     grid = np.zeros(shape, bool)
@@ -149,14 +158,20 @@ def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np
     shape = tuple(np.ceil((obj_g[:, :2].max(0) + config.plane.ring_outer + cell - origin) / cell).astype(int) + 1)
     footprint = _raster(obj_g[:, :2], origin, cell, shape)
     dist = ndimage.distance_transform_edt(~footprint) * cell
+    # only the Gaussians of a world box holding the raster's column around the base can be in the ring
+    corners = np.stack(np.meshgrid(*[[a, b] for a, b in zip(
+        [*origin, base - config.plane.ring_height], [*(origin + np.array(shape) * cell), base + config.plane.ring_height])],
+        indexing="ij"), -1).reshape(-1, 3) @ rot
+    nearby = within_box(kept_means, corners.min(0), corners.max(0))
+    kept_means, kept_opacity = kept_means[nearby], kept_opacity[nearby]
     kept_g = kept_means @ rot.T
     ij = np.floor((kept_g[:, :2] - origin) / cell).astype(np.int64)
     inside = (ij[:, 0] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[1])
     d = np.full(len(kept_means), np.inf)
     d[inside] = dist[ij[inside, 0], ij[inside, 1]]
     near_base = np.abs(kept_g[:, 2] - base) <= config.plane.ring_height
-    return np.flatnonzero((d >= config.plane.ring_inner) & (d <= config.plane.ring_outer) & near_base
-                          & (kept_opacity >= config.plane.min_opacity))
+    return nearby[(d >= config.plane.ring_inner) & (d <= config.plane.ring_outer) & near_base
+                  & (kept_opacity >= config.plane.min_opacity)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,10 +222,16 @@ def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, 
     ia, ib = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
     centres_xy = origin + (np.stack([ia, ib], -1) + 0.5) * cell  # (H, W, 2)
 
+    lo, hi = origin - reach, origin + np.array(shape) * cell + reach
+    # only the kept Gaussians of a world box holding the local slab (in-plane [lo, hi], ±slab) matter
+    corners = np.stack(np.meshgrid([lo[0], hi[0]], [lo[1], hi[1]], [-config.fill.slab, config.fill.slab],
+                                   indexing="ij"), -1).reshape(-1, 3)
+    corners = plane.point + corners[:, :1] * u + corners[:, 1:2] * v + corners[:, 2:] * plane.normal
+    nearby = within_box(kept_means, corners.min(0), corners.max(0))
+    kept_means, kept_opacity = kept_means[nearby], kept_opacity[nearby]
     h_kept = plane.height(kept_means)
     on_plane = (np.abs(h_kept) <= config.fill.slab) & (kept_opacity >= config.plane.min_opacity)
     kept_xy = plane_xy(kept_means[on_plane])
-    lo, hi = origin - reach, origin + np.array(shape) * cell + reach
     local = kept_xy[np.all((kept_xy >= lo) & (kept_xy <= hi), axis=1)]
     if len(local) >= 2:
         d_nn, _ = cKDTree(local).query(local, k=2)
@@ -233,13 +254,28 @@ def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, 
     return FillRegion(plane, u, v, centres, int(exposed.sum()), spacing)
 
 
+NEIGHBOUR_REACH = 0.05  # metres: the colour neighbours are first sought within this box around the centres
+
+
 def neighbour_colours(centres: np.ndarray, kept_means: np.ndarray, kept_rgb: np.ndarray, k: int) -> np.ndarray:
-    """(K, 3) mean colour of the k nearest kept Gaussians (``kept_rgb`` (N, 3)) of each centre."""
+    """(K, 3) mean colour of the k nearest kept Gaussians (``kept_rgb`` (N, 3)) of each centre.
+
+    Sought among the Gaussians of the centres' box grown by ``NEIGHBOUR_REACH`` first (a tree of
+    the whole tabletop per object was most of this step): when every centre's k-th neighbour there
+    lies within that reach, no Gaussian outside the box can be nearer, and these are the k nearest
+    of all; otherwise all are searched."""
     from scipy.spatial import cKDTree
 
     if len(kept_means) == 0:
         return np.full((len(centres), 3), 0.5)
-    _, nn = cKDTree(kept_means).query(centres, k=min(k, len(kept_means)))
+    k = min(k, len(kept_means))
+    if len(centres):
+        local = within_box(kept_means, centres.min(0) - NEIGHBOUR_REACH, centres.max(0) + NEIGHBOUR_REACH)
+        if len(local) >= k:
+            d, nn = cKDTree(kept_means[local]).query(centres, k=k)
+            if np.all(d.reshape(len(centres), -1)[:, -1] <= NEIGHBOUR_REACH):
+                return kept_rgb[local[nn.reshape(len(centres), -1)]].mean(axis=1)
+    _, nn = cKDTree(kept_means).query(centres, k=k)
     return kept_rgb[nn.reshape(len(centres), -1)].mean(axis=1)
 
 

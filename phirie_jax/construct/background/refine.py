@@ -23,6 +23,7 @@ from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.targets import Frame
+from phirie_jax.construct.background.views import padded, to_device
 from phirie_jax.geometry import sigmoid
 from phirie_jax.progress import task
 from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
@@ -53,11 +54,11 @@ def geometry(disk_set: DiskSet, size: int, grid: float, max_sigma: float) -> fil
     pad = size - n
     d = disk_set.disks
     return fill_kernel.FillGeometry(
-        centres=jnp.asarray(np.concatenate([d.means, np.zeros((pad, 3), np.float32)])),
-        tangents=jnp.asarray(np.concatenate([disk_set.tangents, np.zeros((pad, 2, 3))]).astype(np.float32)),
-        quats=jnp.asarray(np.concatenate([d.quats, np.tile([[1.0, 0, 0, 0]], (pad, 1))]).astype(np.float32)),
-        log_thickness=jnp.asarray(np.concatenate([d.log_scales[:, 2], np.full(pad, -10.0)]).astype(np.float32)),
-        valid=jnp.asarray(np.arange(size) < n),
+        centres=to_device(np.concatenate([d.means, np.zeros((pad, 3), np.float32)])),
+        tangents=to_device(np.concatenate([disk_set.tangents, np.zeros((pad, 2, 3))]).astype(np.float32)),
+        quats=to_device(np.concatenate([d.quats, np.tile([[1.0, 0, 0, 0]], (pad, 1))]).astype(np.float32)),
+        log_thickness=to_device(np.concatenate([d.log_scales[:, 2], np.full(pad, -10.0)]).astype(np.float32)),
+        valid=to_device(np.arange(size) < n),
         max_offset=jnp.float32(grid), min_log_scale=jnp.float32(np.log(0.25 * grid)),
         max_log_scale=jnp.float32(np.log(max_sigma * grid)))
 
@@ -66,10 +67,10 @@ def initial_params(disk_set: DiskSet, size: int) -> fill_kernel.FillParams:
     d = disk_set.disks
     pad = size - d.num
     return fill_kernel.FillParams(
-        dc=jnp.asarray(np.concatenate([d.sh[:, 0], np.zeros((pad, 3), np.float32)])),
-        opacity_logits=jnp.asarray(np.concatenate([d.opacity_logits, np.full(pad, -10.0, np.float32)])),
+        dc=to_device(np.concatenate([d.sh[:, 0], np.zeros((pad, 3), np.float32)])),
+        opacity_logits=to_device(np.concatenate([d.opacity_logits, np.full(pad, -10.0, np.float32)])),
         raw_offsets=jnp.zeros((size, 2), jnp.float32),
-        log_scales=jnp.asarray(np.concatenate([d.log_scales[:, :2], np.zeros((pad, 2), np.float32)])))
+        log_scales=to_device(np.concatenate([d.log_scales[:, :2], np.zeros((pad, 2), np.float32)])))
 
 
 def frame_disks(disk_set: DiskSet, frame: Frame, max_sigma: float, max_offset: float) -> np.ndarray:
@@ -85,8 +86,6 @@ def stack_frames(frames: list[Frame], count: int, disk_lists: list[np.ndarray]) 
     """The frames as one batched ``FillFrame`` of ``count`` (≥ len(frames)) entries, stacked and
     padded on the host (one transfer per field; on the device every slab of a new size compiled
     its own padding programs)."""
-    from phirie_jax.construct.background.views import padded
-
     slab_size = gaussian_bucket(max(f.slab.num for f in frames))
     disk_size = gaussian_bucket(max(len(d) for d in disk_lists))
     size = frames[0].crop.size
@@ -108,9 +107,9 @@ def stack_frames(frames: list[Frame], count: int, disk_lists: list[np.ndarray]) 
             items.append({**items[0], "world_to_camera": w2c, "mask": np.zeros((size, size), np.float32)})
 
     def stacked(key):
-        return jnp.asarray(np.stack([np.asarray(item[key]) for item in items]))
+        return to_device(np.stack([np.asarray(item[key]) for item in items]))
 
-    slab = Gaussians(**{k: jnp.asarray(np.stack([item["slab"][k] for item in items])) for k in items[0]["slab"]})
+    slab = Gaussians(**{k: to_device(np.stack([item["slab"][k] for item in items])) for k in items[0]["slab"]})
     return fill_kernel.FillFrame(
         K=stacked("K"), world_to_camera=stacked("world_to_camera"), slab=slab, disks=stacked("disks"),
         disk_valid=stacked("disk_valid"), front_rgb=stacked("front_rgb"), front_trans=stacked("front_trans"),

@@ -42,6 +42,7 @@ frames), so an editor can start from it and hand it back.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -83,17 +84,44 @@ class PrimaryView:
 
 def _image(camera: Camera) -> np.ndarray | None:
     """The captured image (H, W, 3) float RGB, or None."""
-    import cv2
-
     if camera.image_path is None or not Path(camera.image_path).is_file():
         return None
-    img = cv2.imread(str(camera.image_path), cv2.IMREAD_UNCHANGED)
-    if img is None or img.shape[:2] != (camera.height, camera.width):
+    return _read_rgb(Path(camera.image_path), camera.width, camera.height)
+
+
+def _read_rgb(path: Path, width: int, height: int) -> np.ndarray | None:
+    """The image file (height, width, 3) float RGB, or None when unreadable or of another size."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.shape[:2] != (height, width):
         return None
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
     return img[..., 2::-1].astype(np.float32) / scale
+
+
+def _grey(camera: Camera) -> np.ndarray | None:
+    """The captured image in grey (H, W) float32, or None; each file decoded once while it is
+    unchanged (the objects of a scene share their candidate views)."""
+    if camera.image_path is None or not Path(camera.image_path).is_file():
+        return None
+    stat = Path(camera.image_path).stat()
+    return _grey_file(str(camera.image_path), stat.st_mtime_ns, stat.st_size, camera.width, camera.height)
+
+
+@functools.lru_cache(maxsize=64)
+def _grey_file(path: str, mtime_ns: int, size: int, width: int, height: int) -> np.ndarray | None:
+    """(Cached by the file's path, modification time and size.) Read-only."""
+    import cv2
+
+    img = _read_rgb(Path(path), width, height)
+    if img is None:
+        return None
+    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    grey.setflags(write=False)
+    return grey
 
 
 def _box(uv: np.ndarray, radius: np.ndarray, camera: Camera) -> np.ndarray | None:
@@ -128,12 +156,12 @@ def choose_primary(object_id: int, centres: np.ndarray, normal: np.ndarray, came
     best = scored[:SHARPNESS_CANDIDATES]
     sharp = []
     for _, view, uv in best:
-        img = _image(cameras[view])
+        grey = _grey(cameras[view])
         box = _box(uv, np.zeros(len(uv)), cameras[view])
-        if img is None or box is None:
+        if grey is None or box is None:
             sharp.append(np.nan)
             continue
-        patch = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)[box[1]:box[3] + 1, box[0]:box[2] + 1]
+        patch = grey[box[1]:box[3] + 1, box[0]:box[2] + 1]
         sharp.append(float(cv2.Laplacian(patch, cv2.CV_32F).var()) if patch.size >= 9 else np.nan)
     sharp = np.asarray(sharp)
     med = np.nanmedian(sharp) if np.isfinite(sharp).any() else np.nan

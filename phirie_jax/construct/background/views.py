@@ -9,9 +9,10 @@ Only Gaussians that can touch the window are rendered: the host culls by a conse
 3σ screen radius (the kernel's EWA radius is at most this; see ``screen_radius_bound``), and
 pads every subset of a pass to one power-of-two count so the pass compiles once.
 
-The padding is done on the host (NumPy), so a subset of a new size costs a transfer, never a
-program: padded on the device, every distinct size compiled its own small programs (on the
-CPU, 384 compilations for the four objects of a ``default`` scene). ``CropRenderer.render_many``
+The padding is done on the host (NumPy) and the padded arrays copied to the device as they are
+(``to_device``), so a subset of a new size costs a transfer, never a program: padded on the
+device, every distinct size compiled its own small programs (on the CPU, 384 compilations for
+the four objects of a ``default`` scene). ``CropRenderer.render_many``
 renders the crops of a pass in batches of ``batch_size`` (one launch each, one program per
 batch size), every crop of a batch with its own Gaussian subset, features and background.
 """
@@ -20,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 from kernels.gaussians import Gaussians
@@ -185,6 +186,12 @@ def padded(data: GaussianSplatData, pad_to: int, sh_coeffs: int | None = None) -
     return out
 
 
+def to_device(array: np.ndarray) -> jax.Array:
+    """A host array on the default device as it is: ``jax.device_put`` copies it, where
+    ``jnp.asarray`` compiles a small program for every new shape (JAX 0.10)."""
+    return jax.device_put(np.ascontiguousarray(array))
+
+
 def _features(features: np.ndarray | None, n: int, pad_to: int, num_features: int) -> np.ndarray:
     feats = np.zeros((pad_to, num_features), np.float32)
     if features is not None and n:
@@ -211,13 +218,12 @@ class CropRenderer:
     def render(self, data: GaussianSplatData, crop: Crop, pad_to: int, features: np.ndarray | None = None,
                num_features: int = 2, background=None) -> CropImage:
         """The render of ``data`` (≤ ``pad_to`` Gaussians) in the crop. features: (N, F ≤ num_features)."""
-        arrays = padded(data, pad_to)
-        g = Gaussians(**{k: jnp.asarray(v) for k, v in arrays.items()})
+        g = Gaussians(**{k: to_device(v) for k, v in padded(data, pad_to).items()})
         bg = None if background is None else np.asarray(background, np.float32)
         self.renders += 1
         self.launches += 1
-        out = self.renderer.render(g, crop.camera, features=jnp.asarray(_features(features, data.num, pad_to,
-                                                                                  num_features)), background=bg)
+        out = self.renderer.render(g, crop.camera, features=to_device(_features(features, data.num, pad_to,
+                                                                                num_features)), background=bg)
         return CropImage(np.asarray(out.rgb), np.asarray(out.alpha), np.asarray(out.depth), np.asarray(out.features))
 
     def render_many(self, jobs: list[CropJob], pad_to: int, num_features: int = 2) -> list[CropImage]:
@@ -240,12 +246,12 @@ class CropRenderer:
             empty = dataclasses.replace(chunk[0], index=np.zeros(0, np.int64), features=None)
             batch = chunk + [empty] * (per - len(chunk))
             arrays = [padded(j.gaussians(), pad_to, sh_coeffs) for j in batch]
-            g = Gaussians(**{k: jnp.asarray(np.stack([a[k] for a in arrays])) for k in arrays[0]})
+            g = Gaussians(**{k: to_device(np.stack([a[k] for a in arrays])) for k in arrays[0]})
             feats = np.stack([_features(j.features, j.num, pad_to, num_features) for j in batch])
             bgs = np.stack([np.zeros(3, np.float32) if j.background is None else np.asarray(j.background, np.float32)
                             for j in batch])
-            out = self.renderer.render_batch(g, [j.crop.camera for j in batch], features=jnp.asarray(feats),
-                                             background=jnp.asarray(bgs))
+            out = self.renderer.render_batch(g, [j.crop.camera for j in batch], features=to_device(feats),
+                                             background=to_device(bgs))
             rgb, alpha, depth, features = (np.asarray(x) for x in (out.rgb, out.alpha, out.depth, out.features))
             images += [CropImage(rgb[b], alpha[b], depth[b], features[b]) for b in range(len(chunk))]
             self.renders += len(chunk)

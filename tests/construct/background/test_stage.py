@@ -61,6 +61,25 @@ def test_manifest_contract_and_output_file(run):
     assert "background" in manifest["timings"] and "background.refine" in manifest["timings"]
 
 
+def test_a_scene_of_other_subset_sizes_compiles_nothing_new(run, tmp_path):
+    """Every render and the fit take bucketed shapes: a second scene whose objects' subsets differ
+    in size (plane Gaussians dropped), but not its buckets, reuses every program of the first."""
+    import shutil
+
+    from phirie_jax.io.ply import write_gaussian_ply
+
+    scene, manifest = run
+    assert manifest["background"]["compiles"]["count"] > 0        # the first run compiled the stage's programs
+    shutil.copytree(scene.root / "scene", tmp_path / "scene")
+    shutil.copytree(scene.root / "out", tmp_path / "out", ignore=shutil.ignore_patterns("background*"))
+    keep = np.ones(scene.data.num, bool)
+    keep[np.flatnonzero(scene.labels == 0)[::97]] = False          # a few plane Gaussians fewer everywhere
+    write_gaussian_ply(tmp_path / "scene" / "point_cloud.ply", scene.data.subset(keep))
+    second = run_background(tmp_path / "scene", tmp_path / "out", FAST)["background"]
+    assert second["source_gaussians"] < manifest["background"]["source_gaussians"]
+    assert second["compiles"]["count"] == 0, second["compiles"]
+
+
 def test_kept_gaussians_are_written_unchanged(run):
     scene, manifest = run
     kept, out = _kept_mask(scene, manifest)
