@@ -18,6 +18,10 @@ manifest keeps the earlier stages' times.
 
 ``--densify K`` stands in for a capture trained to millions of Gaussians: every Gaussian is
 replaced by K children (``densified``), so the scene and its images stay those of the preset.
+
+Beside the timings: per object the collision's CoACD tier, threshold, parts, hull-volume ratio and
+drop-test verdict, the collision workers and their OpenMP threads, and the background stage's XLA
+compilations, crop renders, render launches and target frames.
 """
 
 from __future__ import annotations
@@ -117,7 +121,8 @@ def main() -> None:
     if args.resume:
         capture = args.work / "capture"
         command = [sys.executable, "-c", "import sys; from phirie_jax.pipeline import run_convert; "
-                   "run_convert(sys.argv[1], sys.argv[2], masks='auto', stages=tuple(sys.argv[3:]))",
+                   "run_convert(sys.argv[1], sys.argv[2], masks='auto', stages=tuple(sys.argv[3:]), "
+                   "allow_outside_paths=True)",
                    str(capture), str(out), *args.resume]
     else:
         capture = user_capture(scene, args.work / "capture", LEFT_OUT)
@@ -128,7 +133,9 @@ def main() -> None:
             write_gaussian_ply(capture / "point_cloud.ply",
                                densified(read_gaussian_ply(scene / "point_cloud.ply"), args.densify))
         shutil.rmtree(out, ignore_errors=True)
-        command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto"]
+        # the capture links the synthesized scene's files: images outside its folder, read on purpose
+        command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto",
+                   "--allow-outside-paths"]
     start, peak = time.perf_counter(), 0
     child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     log: list[str] = []
@@ -158,6 +165,16 @@ def main() -> None:
           "collision_s_per_object": {str(o["id"]): round(o["physics"]["collision"]["total_time_s"], 1)
                                      for o in manifest.get("objects", [])
                                      if (o.get("physics") or {}).get("collision", {}).get("total_time_s")},
+          "collision_per_object": {str(o["id"]): {
+              **{k: (o["physics"]["collision"].get("coacd") or {}).get(k) for k in ("tier", "threshold")},
+              "parts": o["physics"]["collision"]["parts"],
+              "hull_volume_ratio": round(o["physics"]["collision"]["hull_volume_ratio"], 4),
+              "stable": (o.get("drop_test") or {}).get("stable")}
+              for o in manifest.get("objects", []) if (o.get("physics") or {}).get("collision")},
+          "collision_workers": (manifest.get("physics") or {}).get("collision_workers"),
+          "background_compiles": (manifest.get("background") or {}).get("compiles"),
+          "background_renders": {k: (manifest.get("background") or {}).get(k) for k in ("renders", "render_launches")},
+          "background_frames": len(((manifest.get("background") or {}).get("targets") or {}).get("frames") or []),
           "frame": {k: manifest.get("frame", {}).get(k) for k in ("up_source", "scale", "scale_source")},
           "instances": len(manifest.get("instances", [])),
           "accepted": sum(o.get("status") == "accepted" for o in manifest.get("objects", [])),

@@ -3,9 +3,10 @@
 ``repair_mesh`` merges vertices, drops degenerate and duplicate triangles, fixes winding and
 normals, fills small holes and simplifies to the triangle budget; it raises ``MeshError``
 (a reason for people) for an empty mesh, a non-manifold one (an edge shared by more than two
-triangles) and one of zero volume. ``decompose`` runs CoACD (threshold 0.05, ≤ 16 parts)
-and decimates each part to ≤ 64 hull vertices so MJX can collide it; a CoACD failure falls
-back to the convex hull and says so. ``hull_part`` is the fast single-hull stand-in used
+triangles) and one of zero volume. ``decompose`` runs CoACD (threshold 0.05, ≤ 16 parts; the
+threshold raised for small and nearly convex objects, ``coacd_settings``) and decimates each
+part to ≤ 64 hull vertices so MJX can collide it; a CoACD failure falls back to the convex hull
+and says so. ``hull_part`` is the fast single-hull stand-in used
 while ranking candidates.
 
 Every part is a convex point set in the mesh's own (canonical) frame: ``(V, 3)`` vertices,
@@ -84,8 +85,13 @@ def _simplify(mesh, max_triangles: int):
 
 def orient_faces(faces: np.ndarray) -> np.ndarray:
     """Flip triangles so that every edge shared by two of them is traversed in opposite directions
-    (breadth-first over edge neighbours, per connected piece; manifold input)."""
+    (breadth-first over edge neighbours, per connected piece; manifold input). A mesh whose
+    triangles already agree (no directed edge twice: a marching-cubes visual hull) is returned as
+    it is, without the walk: the walk would flip nothing."""
     faces = np.asarray(faces, np.int64).copy()
+    directed_edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    if len(np.unique(directed_edges, axis=0)) == len(directed_edges):
+        return faces
     edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
     _, edge_id = np.unique(edges, axis=0, return_inverse=True)
     edge_id = edge_id.reshape(-1)
@@ -247,9 +253,55 @@ def ghost_part(first: ConvexPart) -> ConvexPart:
     return ConvexPart(centre + GHOST_SHRINK * (first.vertices - centre), first.faces)
 
 
-def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig) -> list[np.ndarray]:
+@dataclasses.dataclass(frozen=True)
+class CoacdSettings:
+    """CoACD's settings for one mesh (``coacd_settings``) and the measures they came from."""
+
+    threshold: float
+    mcts_iterations: int
+    max_triangles: int   # CoACD's input simplified to at most this many triangles (0: as repaired)
+    tier: str            # "fixed" (adaptive settings off), "nearly convex" or "concave"
+    solidity: float      # mesh volume / convex hull volume (1 for an open mesh: unknown)
+    extent: float        # the mesh's largest extent, metres
+
+    def record(self) -> dict:
+        return {"threshold": round(self.threshold, 4), "mcts_iterations": self.mcts_iterations,
+                "max_triangles": self.max_triangles, "tier": self.tier, "solidity": round(self.solidity, 4),
+                "extent_m": round(self.extent, 4)}
+
+
+def coacd_settings(mesh: RepairedMesh, config: PhysicsConfig = PhysicsConfig()) -> CoacdSettings:
+    """CoACD's settings for ``mesh`` (``AdaptiveCoacd``): its threshold raised for a small object (an
+    absolute tolerance) and for a nearly convex one, fewer tree-search iterations, a simplified
+    input; the fixed ``PhysicsConfig`` settings when adaptation is off."""
+    adaptive = config.coacd_adaptive
+    hull = _hull_volume(mesh.vertices)
+    solidity = min(1.0, mesh.volume / hull) if mesh.watertight and hull > 0 else 1.0
+    extent = float(np.max(mesh.vertices.max(0) - mesh.vertices.min(0)))
+    if not adaptive.enabled:
+        return CoacdSettings(config.coacd_threshold, config.coacd_mcts_iterations, 0, "fixed", solidity, extent)
+    threshold = max(config.coacd_threshold, min(1.0, 2 * adaptive.tolerance / max(extent, 1e-9)))
+    convex = mesh.watertight and solidity >= adaptive.convex_solidity
+    if convex:
+        threshold = max(threshold, adaptive.convex_threshold)
+    return CoacdSettings(threshold, adaptive.mcts_iterations, adaptive.max_triangles,
+                         "nearly convex" if convex else "concave", solidity, extent)
+
+
+def _coacd_input(mesh: RepairedMesh, max_triangles: int) -> RepairedMesh:
+    """The mesh CoACD decomposes: ``mesh``, simplified to ``max_triangles`` when it has more."""
+    if not max_triangles or len(mesh.faces) <= max_triangles:
+        return mesh
+    small = _simplify(_trimesh(mesh.vertices, mesh.faces), max_triangles)
+    watertight = bool(small.is_watertight)
+    return RepairedMesh(np.asarray(small.vertices), np.asarray(small.faces), watertight,
+                        abs(float(small.volume)) if watertight else mesh.volume, mesh.report)
+
+
+def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig, settings: CoacdSettings | None = None) -> list[np.ndarray]:
     import coacd
 
+    settings = settings or coacd_settings(mesh, config)
     coacd.set_log_level("error")
     preprocess = config.coacd_preprocess
     if preprocess == "auto":
@@ -258,21 +310,24 @@ def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig) -> list[np.ndarray]:
         # whose handle enters its wall: 169 s → 20 s, with tighter hulls, measured)
         preprocess = "off" if mesh.watertight else "on"
     result = coacd.run_coacd(
-        coacd.Mesh(mesh.vertices, mesh.faces), threshold=config.coacd_threshold, max_convex_hull=config.max_parts,
+        coacd.Mesh(mesh.vertices, mesh.faces), threshold=settings.threshold, max_convex_hull=config.max_parts,
         preprocess_mode=preprocess, preprocess_resolution=config.coacd_preprocess_resolution,
         resolution=config.coacd_resolution, mcts_nodes=config.coacd_mcts_nodes,
-        mcts_iterations=config.coacd_mcts_iterations, decimate=True, max_ch_vertex=config.max_hull_vertices,
+        mcts_iterations=settings.mcts_iterations, decimate=True, max_ch_vertex=config.max_hull_vertices,
         seed=config.coacd_seed)
     return [np.asarray(v, np.float64) for v, _ in result]
 
 
 def decompose(mesh: RepairedMesh, config: PhysicsConfig = PhysicsConfig()) -> Collision:
-    """CoACD parts of a repaired mesh, each ≤ ``max_hull_vertices``; the hull if CoACD fails."""
+    """CoACD parts of a repaired mesh, each ≤ ``max_hull_vertices``, with the object's settings
+    (``coacd_settings``, recorded under ``coacd``); the hull if CoACD fails."""
     start = time.perf_counter()
     report: dict = {"method": "coacd", "repair": mesh.report}
     parts: list[ConvexPart] = []
+    settings = coacd_settings(mesh, config)
+    report["coacd"] = settings.record()
     try:
-        raw = _coacd_parts(mesh, config)
+        raw = _coacd_parts(_coacd_input(mesh, settings.max_triangles), config, settings)
         parts = [p for p in (convex_part(v, config.max_hull_vertices) for v in raw if len(v) >= 4) if p is not None]
         if not parts:
             raise RuntimeError(f"CoACD returned {len(raw)} parts, none a solid hull")

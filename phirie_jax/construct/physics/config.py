@@ -98,6 +98,40 @@ class DropTestConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class AdaptiveCoacd:
+    """CoACD's settings by the object's size and complexity (``collision.coacd_settings``).
+
+    A completed mesh is a visual hull or a registered asset of up to 40K triangles whose surface
+    carries small bumps; at a fixed threshold CoACD chases them, splitting a fruit into 16 parts
+    in 19 s of CPU. Measurements behind the defaults: ``experiments/results/coacd_parts.json``.
+
+    Attributes:
+        enabled: False: the fixed settings of ``PhysicsConfig`` for every object.
+        max_triangles: CoACD decomposes the mesh simplified to this many triangles (the body's
+            volume, and the parts' ratio to it, stay those of the repaired mesh).
+        mcts_iterations: CoACD's tree-search iterations (the fixed ``coacd_mcts_iterations``: 60).
+        tolerance: metres: an absolute concavity tolerance; CoACD's threshold is relative to the
+            object's largest extent, so a small object's threshold is raised to ``2 · tolerance /
+            extent`` (it stops at the same absolute detail as a large one).
+        convex_solidity: a watertight mesh enclosing at least this fraction of its convex hull's
+            volume is nearly convex ...
+        convex_threshold: ... and decomposed at this threshold at least (its concavities are
+            surface bumps, not handles or cavities).
+    """
+
+    enabled: bool = True
+    max_triangles: int = 8000
+    mcts_iterations: int = 30
+    tolerance: float = 0.003
+    convex_solidity: float = 0.85
+    convex_threshold: float = 0.1
+
+    def __post_init__(self):
+        check_ranges(self, {"max_triangles": Range(4), "mcts_iterations": AT_LEAST_ONE, "tolerance": NON_NEGATIVE,
+                            "convex_solidity": POSITIVE_FRACTION, "convex_threshold": POSITIVE_FRACTION})
+
+
+@dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     """Simulator assets: collision geometry, physics priors, MJCF/URDF export, drop tests.
 
@@ -124,10 +158,16 @@ class PhysicsConfig:
             defaults; seeded).
         coacd_mcts_nodes / coacd_mcts_iterations: CoACD's tree search, ours (10 / 60): faster with
             tighter hulls than its defaults (physics_notes.md "CoACD tree search").
+        coacd_adaptive: the settings above adapted to each object's size and complexity
+            (``AdaptiveCoacd``; its ``enabled`` False keeps them fixed).
         min_volume: a mesh whose convex hull encloses less than this (m³) has zero volume and
             fails (a flat sheet cannot be a rigid body).
-        workers: processes building the objects' collision in parallel (CoACD is single-threaded);
-            0: one per CPU core, 1: in this process.
+        workers: processes building the objects' collision in parallel; 0: one per CPU core, 1: in
+            this process.
+        coacd_threads: OpenMP threads of each worker process (CoACD runs parts of its search in an
+            OpenMP team, one thread per core unless told): 0 = the CPU cores shared among the
+            workers, at least one each (with one worker per core: one thread, instead of cores²
+            threads waiting on each other).
         background: "supports" (a box under each support the objects stand on, fitted to the
             scene surface, plus a floor plane) or "plane" (one plane at the lowest support).
         support_thickness: thickness of a support box, below its top face.
@@ -153,8 +193,10 @@ class PhysicsConfig:
     coacd_mcts_nodes: int = 10
     coacd_mcts_iterations: int = 60
     coacd_seed: int = 0
+    coacd_adaptive: AdaptiveCoacd = AdaptiveCoacd()
     min_volume: float = 1e-9
     workers: int = 0
+    coacd_threads: int = 0
     background: str = "supports"
     support_thickness: float = 0.04
     scene_solver_iterations: int = 20
@@ -178,6 +220,7 @@ class PhysicsConfig:
             "coacd_preprocess_resolution": AT_LEAST_ONE, "coacd_resolution": AT_LEAST_ONE,
             "coacd_mcts_nodes": AT_LEAST_ONE, "coacd_mcts_iterations": AT_LEAST_ONE, "coacd_seed": NON_NEGATIVE,
             "min_volume": NON_NEGATIVE, "workers": Range(0, bound="0: one per CPU core"),
+            "coacd_threads": Range(0, bound="0: the cores shared among the workers"),
             "support_thickness": POSITIVE, "scene_solver_iterations": AT_LEAST_ONE,
             "scene_line_search_iterations": AT_LEAST_ONE})
         for category, mass in self.category_masses:

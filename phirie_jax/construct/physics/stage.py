@@ -12,7 +12,8 @@ exported folder alone), and a 2 s free settle of the whole scene is recorded.
 
 Manifest: each object gets ``collision``, ``mass``, ``friction``, ``physics`` (priors, mass
 properties, collision report, URDF path, body name), ``drop_test`` and its ``checks.settling``
-row; the ``physics`` section holds the scene, its USD record, background geoms, settle and
+row; the ``physics`` section holds the scene, its USD record, background geoms, settle, the
+collision's worker processes and their OpenMP threads (``collision_workers``) and
 config; timings ``physics`` and ``physics.<step>``.
 """
 
@@ -65,12 +66,15 @@ def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: Physi
         if collision is None:
             with manifest.timed("physics.collision"):
                 build_accepted(objects, manifest.categories(), out_dir, config)
+            pool = pool_record(sum(is_kept(e) for e in objects), config)
         else:
             with manifest.timed("physics.collision_wait"):
                 apply_outcomes(objects, collision.ids, collision.outcomes())
             manifest.record_timing("physics.collision", collision.seconds)
+            pool = pool_record(len(collision.ids), config)
         with manifest.timed("physics.export"):
             section = export_scene(objects, manifest.up(), _surface(manifest, out_dir), out_dir, config)
+        section["collision_workers"] = pool
         manifest.set("objects", objects)
         with manifest.timed("physics.droptest"):
             run_droptest(out_dir, config, manifest)
@@ -191,13 +195,13 @@ def _gathered(futures: list, advance) -> list[dict | None]:
     return outcomes
 
 
-def _retried_alone(build, args: list[tuple], outcomes: list[dict | None], advance) -> list[dict]:
+def _retried_alone(build, args: list[tuple], outcomes: list[dict | None], advance, threads: int = 0) -> list[dict]:
     """The objects whose worker died (None in ``outcomes``) built again, each alone."""
     from concurrent.futures.process import BrokenProcessPool
 
     for k, outcome in enumerate(outcomes):
         if outcome is None:
-            with _worker_pool(1) as alone, _terminated_on_interrupt(alone):
+            with _worker_pool(1, threads) as alone, _terminated_on_interrupt(alone):
                 try:
                     outcomes[k] = alone.submit(build, *args[k]).result()
                 except BrokenProcessPool:
@@ -220,8 +224,11 @@ class CollisionJob:
         self._start = time.perf_counter()
         self._finished = self._start
         self._pool = self._futures = None
+        self._threads = 0
         if config.workers != 1 and self._args:
-            self._pool = _worker_pool(_worker_count(len(self._args), config))
+            workers = _worker_count(len(self._args), config)
+            self._threads = worker_threads(workers, config)
+            self._pool = _worker_pool(workers, self._threads)
             self._futures = [self._pool.submit(self._build, *a) for a in self._args]
             for future in self._futures:
                 future.add_done_callback(self._note_finish)
@@ -255,7 +262,7 @@ class CollisionJob:
                 self._pool.shutdown()
                 self._pool = None
                 if None in outcomes:  # a worker died: its objects are built again, each alone
-                    outcomes = _retried_alone(self._build, self._args, outcomes, advance)
+                    outcomes = _retried_alone(self._build, self._args, outcomes, advance, self._threads)
                     self._finished = time.perf_counter()
         self.seconds = self._finished - self._start
         return outcomes
@@ -270,17 +277,47 @@ def start_collision(out_dir: str | Path, config: PhysicsConfig | None = None) ->
     return CollisionJob(accepted, manifest.categories(), out_dir, config or PhysicsConfig())
 
 
-def _worker_pool(workers: int):
+def _worker_pool(workers: int, threads: int = 0):
     """A pool of ``workers`` spawned processes, each killed by the kernel when this process ends
-    (``native.die_with_parent``: a ``kill -9`` of the run leaves no CoACD running on its own)."""
+    (``native.die_with_parent``: a ``kill -9`` of the run leaves no CoACD running on its own),
+    whose OpenMP libraries start ``threads`` threads each (0: their own default, one per core)."""
     import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor
 
+    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
+    return ProcessPoolExecutor(workers, mp_context=spawn, initializer=_start_worker, initargs=(os.getpid(), threads))
+
+
+def _start_worker(parent: int, threads: int) -> None:
+    """A collision worker: it dies with ``parent``; CoACD (and Open3D), imported only when its
+    first object is built, read ``OMP_NUM_THREADS`` then. CoACD runs parts of its search in an
+    OpenMP team of one thread per core by default: 16 workers on 16 cores made 256 threads
+    that waited for each other (``PhysicsConfig.coacd_threads``)."""
+    import os
+
     from phirie_jax.native import die_with_parent
 
-    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
-    return ProcessPoolExecutor(workers, mp_context=spawn, initializer=die_with_parent, initargs=(os.getpid(),))
+    die_with_parent(parent)
+    if threads > 0:
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+
+
+def pool_record(objects: int, config: PhysicsConfig) -> dict:
+    """The manifest's record of how ``objects`` objects' collision was built: worker processes (0:
+    in the stage's own process) and the OpenMP threads of each."""
+    if config.workers == 1 or objects == 0:
+        return {"workers": 0, "omp_threads": None}
+    workers = _worker_count(objects, config)
+    return {"workers": workers, "omp_threads": worker_threads(workers, config)}
+
+
+def worker_threads(workers: int, config: PhysicsConfig) -> int:
+    """OpenMP threads of each collision worker: ``config.coacd_threads``, or the CPU cores shared
+    among ``workers`` (at least one)."""
+    import os
+
+    return config.coacd_threads or max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
 @contextlib.contextmanager

@@ -34,10 +34,11 @@ def test_coacd_splits_an_annulus_into_several_parts_within_the_vertex_budget():
     centre_inside = [Delaunay(p.vertices).find_simplex([[0.0, 0.0, 0.0]])[0] >= 0 for p in result.parts]
     assert not any(centre_inside)
     assert report["time_s"] > 0 and report["repair"]["watertight"]
+    assert report["coacd"]["tier"] == "concave" and report["coacd"]["threshold"] >= FAST.coacd_threshold
 
 
 def test_a_coacd_failure_falls_back_to_the_convex_hull_and_says_so(monkeypatch):
-    def broken(mesh, config):
+    def broken(mesh, config, settings=None):
         raise RuntimeError("simulated CoACD crash")
 
     monkeypatch.setattr(collision, "_coacd_parts", broken)
@@ -125,3 +126,69 @@ def test_repair_closes_a_hole_and_keeps_the_volume():
     assert mesh.watertight and mesh.report["holes_filled"]
     assert mesh.volume == pytest.approx(box.volume, rel=VOLUME_RTOL)
     assert trimesh.Trimesh(mesh.vertices, mesh.faces).volume > 0
+
+
+def test_orientation_fixes_flipped_triangles_and_leaves_consistent_ones_alone():
+    from phirie_jax.construct.physics.collision import orient_faces
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    assert np.array_equal(orient_faces(sphere.faces), sphere.faces)       # already consistent: unchanged
+    faces = sphere.faces.copy()
+    flipped = np.random.default_rng(0).random(len(faces)) < 0.3
+    faces[flipped] = faces[flipped, ::-1]
+    fixed = orient_faces(faces)
+    directed = np.concatenate([fixed[:, [0, 1]], fixed[:, [1, 2]], fixed[:, [2, 0]]])
+    assert len(np.unique(directed, axis=0)) == len(directed)              # every shared edge both ways
+    same = np.all(fixed == sphere.faces, axis=1)
+    assert same.all() or (~same).all()                                    # the sphere's winding, or all reversed
+
+
+def test_coacd_settings_follow_the_objects_size_and_complexity():
+    from phirie_jax.construct.physics.collision import coacd_settings
+    from phirie_jax.construct.physics.config import AdaptiveCoacd
+
+    config = PhysicsConfig()
+    ring = repair_mesh(*annulus_arrays(0.03, 0.05))                       # solidity 0.64: a real concavity
+    ball = repair_mesh(*sphere_arrays(0.04))                               # nearly convex
+    big_ring = repair_mesh(*annulus_arrays(0.15, 0.25))
+    concave, convex, large = coacd_settings(ring, config), coacd_settings(ball, config), coacd_settings(big_ring, config)
+    assert concave.tier == "concave" and convex.tier == "nearly convex" and large.tier == "concave"
+    assert concave.solidity == pytest.approx(1 - 0.03**2 / 0.05**2, rel=0.02)
+    assert convex.threshold == config.coacd_adaptive.convex_threshold
+    # the absolute tolerance: the 10 cm ring stops at 2 · 3 mm / 10 cm, the 50 cm one at the base threshold
+    assert concave.threshold == pytest.approx(2 * config.coacd_adaptive.tolerance / 0.1, rel=1e-3)
+    assert large.threshold == config.coacd_threshold
+    assert concave.mcts_iterations == config.coacd_adaptive.mcts_iterations < config.coacd_mcts_iterations
+    fixed = coacd_settings(ring, PhysicsConfig(coacd_adaptive=AdaptiveCoacd(enabled=False)))
+    assert (fixed.tier, fixed.threshold, fixed.mcts_iterations, fixed.max_triangles) == (
+        "fixed", config.coacd_threshold, config.coacd_mcts_iterations, 0)
+
+
+def test_coacd_decomposes_a_simplified_input_and_keeps_the_repaired_volume(monkeypatch):
+    from phirie_jax.construct.physics.config import AdaptiveCoacd
+
+    seen = {}
+
+    def recording(mesh, config, settings=None):
+        seen["triangles"] = len(mesh.faces)
+        return [mesh.vertices]
+
+    monkeypatch.setattr(collision, "_coacd_parts", recording)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)     # 5120 triangles
+    config = PhysicsConfig(coacd_adaptive=AdaptiveCoacd(max_triangles=1000))
+    result = collision_from_mesh(sphere.vertices, sphere.faces, config)
+    assert seen["triangles"] <= 1000 and result.report["coacd"]["max_triangles"] == 1000
+    assert result.report["mesh_volume"] == pytest.approx(sphere.volume, rel=1e-9)
+    # one part: the 64-vertex hull of the simplified sphere, inside it, over the repaired sphere's volume
+    assert result.report["hull_volume_ratio"] == pytest.approx(result.parts[0].volume / sphere.volume, rel=1e-9)
+    assert 0.85 < result.report["hull_volume_ratio"] < 1.0
+
+
+def annulus_arrays(r_min: float, r_max: float):
+    mesh = trimesh.creation.annulus(r_min=r_min, r_max=r_max, height=0.02, sections=48)
+    return mesh.vertices, mesh.faces
+
+
+def sphere_arrays(radius: float):
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    return mesh.vertices, mesh.faces

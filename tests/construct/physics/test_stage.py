@@ -52,7 +52,10 @@ def test_objects_get_the_contract_fields(physics):
         report = obj["physics"]["collision"]
         assert report["parts"] == len(obj["collision"]) and report["hull_volume_ratio"] > 0.8
         assert report["method"] in ("coacd", "convex_hull") and report["time_s"] > 0
+        assert report["coacd"]["tier"] in ("nearly convex", "concave") and report["coacd"]["threshold"] >= 0.05
     assert {"physics", "physics.collision", "physics.export", "physics.droptest"} <= set(manifest["timings"])
+    pool = manifest["physics"]["collision_workers"]
+    assert 1 <= pool["workers"] <= len(good) + len(BAD) and pool["omp_threads"] >= 1
 
 
 def test_bad_meshes_become_failed_objects_with_a_reason(physics):
