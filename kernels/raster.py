@@ -181,20 +181,25 @@ def _tiles_to_image(grid: TileGrid, x):
 
 
 def rasterize(gaussians: Gaussians, K, world_to_camera, *, width: int, height: int,
-              background=None, features=None, config: RasterConfig = RasterConfig()
-              ) -> RasterOutput:
+              background=None, features=None, config: RasterConfig = RasterConfig(),
+              means2d_offset=None) -> RasterOutput:
     """Render N Gaussians into one camera.
 
     gaussians: N Gaussians; K (3, 3); world_to_camera (4, 4) OpenCV axes; width, height:
     static image size; background (3,) (default black); features (N, F) extra channels
-    composited like colour (no background). Differentiable in every Gaussian parameter,
-    in ``features`` and ``background``; jit with ``width``, ``height``, ``config`` static.
+    composited like colour (no background); means2d_offset (N, 2) pixels added to the
+    projected means (pass zeros and differentiate: its gradient is dL/d means2d, the
+    screen-space gradient 3DGS densification thresholds).
+    Differentiable in every Gaussian parameter, in ``features``, ``background`` and
+    ``means2d_offset``; jit with ``width``, ``height``, ``config`` static.
     """
     grid = TileGrid(width, height, config.tile_size)
     dtype = gaussians.means.dtype
     n = gaussians.num
     proj = project_gaussians(gaussians, K, world_to_camera, width=width, height=height,
                              tile_size=config.tile_size, near=config.near)
+    if means2d_offset is not None:
+        proj = proj.replace(means2d=proj.means2d + means2d_offset)
     if features is None:
         features = jnp.zeros((n, 0), dtype)
     background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)

@@ -9,13 +9,18 @@ scalars or broadcastable arrays; the host decays the position rate). SH bands ar
 progressively through ``sh_mask``: coefficients of bands not yet on are zeroed before rendering,
 so they get no gradient and stay as they are.
 
-Densification needs each Gaussian's view-space positional gradient. The rasterizer does not expose
-the gradient at the projected mean, so it is recovered from the world gradient g of the mean: a
-one-pixel move on screen is a move of z / f in the camera's x–y plane, hence
-dL/du ≈ (z / fx) (R g)_x, dL/dv ≈ (z / fy) (R g)_y (exact for the mean's screen position,
-which dominates; the paths through depth, covariance and view direction are left out). It is
-reported in NDC units (× W/2, × H/2) like the reference implementation, so thresholds do not
-depend on the image size.
+Densification needs each Gaussian's view-space positional gradient, in NDC units (× W/2, × H/2)
+like the reference implementation, so thresholds do not depend on the image size. Two ways:
+
+- ``exact_screen_gradient``: the gradient at the projected mean itself, dL/d means2d, taken
+  through a zero offset added to the projected means (``rasterize``'s ``means2d_offset``), as
+  gsplat's ``DefaultStrategy`` reads it;
+- otherwise it is recovered from the world gradient g of the mean: a one-pixel move on screen is
+  a move of z / f in the camera's x–y plane, hence dL/du ≈ (z / fx) (R g)_x,
+  dL/dv ≈ (z / fy) (R g)_y (the paths through depth, covariance and view direction are
+  left out). The synthetic scenes' fits (``phirie synth --fitted``) were made this way.
+
+Training images may be float (H, W, 3) in [0, 1] or uint8 (a quarter of the device memory).
 """
 
 from __future__ import annotations
@@ -61,15 +66,23 @@ def masked_sh(params: Gaussians, valid: jax.Array, sh_mask: jax.Array) -> Gaussi
 
 
 def view_loss(params: Gaussians, valid: jax.Array, sh_mask: jax.Array, K: jax.Array,
-              world_to_camera: jax.Array, background: jax.Array, target: jax.Array, *, config: RasterConfig,
-              dssim_weight: float):
+              world_to_camera: jax.Array, background: jax.Array, target: jax.Array,
+              means2d_offset: jax.Array | None = None, *, config: RasterConfig, dssim_weight: float):
     """() photometric loss of one view; aux (radii (N,), overflow () bool, needed () int32).
 
-    valid (N,); sh_mask (K, 1); K (3, 3); world_to_camera (4, 4); background (3,); target (H, W, 3)."""
+    valid (N,); sh_mask (K, 1); K (3, 3); world_to_camera (4, 4); background (3,); target (H, W, 3);
+    means2d_offset (N, 2) or None (``rasterize``)."""
     height, width = target.shape[0], target.shape[1]
     out = rasterize(masked_sh(params, valid, sh_mask), K, world_to_camera, width=width, height=height,
-                    background=background, config=config)
+                    background=background, config=config, means2d_offset=means2d_offset)
     return photometric_loss(out.rgb, target, dssim_weight), (out.radii, out.overflow, out.num_intersections)
+
+
+def as_float_image(image: jax.Array) -> jax.Array:
+    """(H, W, 3) uint8 → float32 in [0, 1]; a float image is returned as it is."""
+    if image.dtype == jnp.uint8:
+        return image.astype(jnp.float32) / 255.0
+    return image
 
 
 def screen_gradient(grad_means: jax.Array, means: jax.Array, K: jax.Array, world_to_camera: jax.Array,
@@ -88,28 +101,45 @@ def screen_gradient(grad_means: jax.Array, means: jax.Array, K: jax.Array, world
 def train_step(params: Gaussians, opt_state: Any, lrs: Gaussians, valid: jax.Array, sh_mask: jax.Array,
                Ks: jax.Array, world_to_cameras: jax.Array, images: jax.Array, view: jax.Array,
                background: jax.Array, grad_sum: jax.Array, seen: jax.Array, *, config: RasterConfig,
-               dssim_weight: float):
+               dssim_weight: float, exact_screen_gradient: bool = False):
     """One Adam step on view ``view`` of V training views.
 
     params: N Gaussians (padding included); lrs: a ``Gaussians`` of per-field learning rates;
-    valid (N,) bool; sh_mask (K, 1); Ks (V, 3, 3); world_to_cameras (V, 4, 4); images (V, H, W, 3);
-    view () int32; background (3,); grad_sum (N,) and seen (N,) the densification statistics so far
-    (summed screen gradient, number of views a Gaussian was visible in).
+    valid (N,) bool; sh_mask (K, 1); Ks (V, 3, 3); world_to_cameras (V, 4, 4); images (V, H, W, 3)
+    float in [0, 1] or uint8; view () int32; background (3,); grad_sum (N,) and seen (N,) the
+    densification statistics so far (summed screen gradient, number of views a Gaussian was
+    visible in).
 
     Returns (params, opt_state, loss, grad_sum, seen, radii (N,), overflow, needed); the loss and
-    the diagnostics are of the params *before* the step. Jit with ``config`` and ``dssim_weight``
-    static. A step that overflowed must be discarded by the caller (its gradient is incomplete).
+    the diagnostics are of the params *before* the step. Jit with ``config``, ``dssim_weight`` and
+    ``exact_screen_gradient`` static. A step that overflowed changes nothing (its gradient is
+    incomplete): params, opt_state, grad_sum and seen come back as they went in, and the caller
+    repeats the step with a larger capacity (so the inputs may be donated).
     """
-    K, w2c, target = Ks[view], world_to_cameras[view], images[view]
-    (loss, (radii, overflow, needed)), grads = jax.value_and_grad(view_loss, has_aux=True)(
-        params, valid, sh_mask, K, w2c, background, target, config=config, dssim_weight=dssim_weight)
-    updates, opt_state = optimizer().update(grads, opt_state, params)
+    K, w2c, target = Ks[view], world_to_cameras[view], as_float_image(images[view])
+    height, width = target.shape[0], target.shape[1]
+    if exact_screen_gradient:
+        offset = jnp.zeros((params.num, 2), params.means.dtype)
+        (loss, (radii, overflow, needed)), (grads, g_screen) = jax.value_and_grad(
+            view_loss, argnums=(0, 7), has_aux=True)(params, valid, sh_mask, K, w2c, background, target, offset,
+                                                     config=config, dssim_weight=dssim_weight)
+        g2 = jnp.hypot(g_screen[:, 0] * (0.5 * width), g_screen[:, 1] * (0.5 * height))
+    else:
+        (loss, (radii, overflow, needed)), grads = jax.value_and_grad(view_loss, has_aux=True)(
+            params, valid, sh_mask, K, w2c, background, target, config=config, dssim_weight=dssim_weight)
+        g2 = screen_gradient(grads.means, params.means, K, w2c, width, height)
+    updates, new_state = optimizer().update(grads, opt_state, params)
     new_params = jax.tree.map(lambda p, u, lr: p + lr * u, params, updates, lrs)
     visible = (radii > 0) & valid
-    g2 = screen_gradient(grads.means, params.means, K, w2c, target.shape[1], target.shape[0])
-    grad_sum = grad_sum + jnp.where(visible, g2, 0.0)
-    seen = seen + visible.astype(seen.dtype)
-    return new_params, opt_state, loss, grad_sum, seen, radii, overflow, needed
+    new_sum = grad_sum + jnp.where(visible, g2, 0.0)
+    new_seen = seen + visible.astype(seen.dtype)
+
+    def kept(new, old):  # an overflowed step leaves everything as it was
+        return jax.tree.map(lambda a, b: jnp.where(overflow, b, a), new, old)
+
+    params, opt_state, grad_sum, seen = kept((new_params, new_state, new_sum, new_seen),
+                                             (params, opt_state, grad_sum, seen))
+    return params, opt_state, loss, grad_sum, seen, radii, overflow, needed
 
 
 def render_views(params: Gaussians, valid: jax.Array, Ks: jax.Array, world_to_cameras: jax.Array,

@@ -17,6 +17,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from phirie_jax.capture.command import capture
 from phirie_jax.cluster import ScenesFailed
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import ConfigValueError, OptionError, SceneInputError, StageError
@@ -676,7 +677,8 @@ def view(out_dir: Annotated[Path, tyro.conf.Positional],
 
 
 COMMANDS = {"info": info, "synth": synth, "render": render, "observe": observe,
-            "convert": convert, "convert-many": convert_many, "droptest": droptest, "simulate": simulate, "demo": demo, "view": view}
+            "convert": convert, "convert-many": convert_many, "droptest": droptest, "simulate": simulate, "demo": demo, "view": view,
+            "capture": capture}
 
 
 def _options_checked(command):

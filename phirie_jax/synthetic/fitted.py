@@ -18,6 +18,10 @@ of the rendered training images (Kerbl et al. 2023, shortened):
 - Gaussian arrays are padded to power-of-two buckets (``phirie_jax.render.gaussian_bucket``) and
   the intersection capacity grows by powers of two, so a fit compiles a handful of programs.
 
+The loop and the densification are those of ``phirie capture`` (``phirie_jax.capture.train``,
+``phirie_jax.capture.densify``), run with this schedule (``FitConfig.training``): no opacity
+reset, large Gaussians pruned from the start, the screen gradient recovered from the world one.
+
 Everything is seeded: the same images, cameras, config and seed give the same Gaussians (on one
 backend). The folder then records how it was fitted in ``gt/fit.json`` and in the PLY's header
 comments; the ideal capture is kept as ``gt/ideal/point_cloud.ply`` (with its labels), and
@@ -31,25 +35,20 @@ import json
 import time
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from kernels import splat_fit
-from kernels.gaussians import Gaussians
-from kernels.raster import RasterConfig
 from kernels.sh import num_sh_coeffs, rgb_to_sh_dc
+from phirie_jax.capture.config import TrainConfig
+from phirie_jax.capture.densify import densify_and_prune  # noqa: F401  (the fit's densification, re-exported)
+from phirie_jax.capture.train import Views, fraction_step, train_gaussians, views_psnr
 from phirie_jax.geometry import sigmoid
 from phirie_jax.io.atomic import write_bytes, write_text
 from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
-from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
 from phirie_jax.types import Camera, GaussianSplatData
 
 LABEL_RADIUS = 0.02       # m: a fitted Gaussian takes the label of the nearest ideal one this close, else 0
 INIT_OPACITY = 0.1        # 3DGS's initial opacity
-MIN_CAPACITY = 1 << 16    # tile intersections of the first program
 EXTENT_MARGIN = 1.1       # scene extent = this × the largest camera distance from the scene centre (3DGS)
-SPLIT_SHRINK = 1.6        # a split Gaussian's children have its scale / this (3DGS)
 INIT_OVERSAMPLE = 8       # candidate points drawn per kept one, at most, by the rejection sampling
 
 
@@ -83,6 +82,19 @@ class FitConfig:
     percent_dense: float = 0.01      # × extent: larger Gaussians are split, smaller ones cloned
     min_opacity: float = 0.005       # pruned below
     max_scale: float = 0.1           # × extent: pruned above (largest axis)
+
+    def training(self) -> TrainConfig:
+        """This fit as the shared training loop's schedule (``phirie_jax.capture.train``)."""
+        return TrainConfig(
+            steps=self.steps, max_gaussians=self.max_gaussians, sh_degree=self.sh_degree,
+            sh_band_interval=self.sh_band_interval, lr_position=self.lr_position,
+            lr_position_final=self.lr_position_final, lr_colour=self.lr_colour, lr_opacity=self.lr_opacity,
+            lr_scale=self.lr_scale, lr_rotation=self.lr_rotation, dssim_weight=self.dssim_weight,
+            densify_from=fraction_step(self.densify_start, self.steps),
+            densify_until=fraction_step(self.densify_stop, self.steps), densify_interval=self.densify_interval,
+            opacity_reset_interval=0, grad_threshold=self.grad_threshold, percent_dense=self.percent_dense,
+            min_opacity=self.min_opacity, max_scale=self.max_scale, exact_screen_gradient=False,
+            init_opacity=INIT_OPACITY, checkpoint_interval=0, holdout_every=0)
 
 
 # Each synthetic preset's fit: about 100 Adam steps per training view, the SH bands and the
@@ -169,99 +181,6 @@ def random_init(images: list[np.ndarray], cameras: list[Camera], config: FitConf
         opacity_logits=np.full(n, np.log(INIT_OPACITY / (1 - INIT_OPACITY)), np.float32), sh=sh)
 
 
-def _quat_matrices(q: np.ndarray) -> np.ndarray:
-    """(N, 4) wxyz, any length → (N, 3, 3) rotations."""
-    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
-
-
-def densify_and_prune(data: GaussianSplatData, grad: np.ndarray, extent: float, config: FitConfig, rng,
-                      densify: bool = True) -> tuple[GaussianSplatData, np.ndarray, dict]:
-    """Clone, split and prune (module docstring). grad (N,) mean screen gradient of each Gaussian.
-
-    Returns the new set, the source row (M,) of each new Gaussian in ``data`` (−1 for the Gaussians
-    densification created: their Adam moments start at zero, as in 3DGS) and the counts."""
-    n = data.num
-    largest = np.exp(data.log_scales.max(axis=1))
-    chosen = np.zeros(n, bool)
-    if densify:
-        room = max(0, config.max_gaussians - n)  # clone and split both add one Gaussian net
-        candidates = np.flatnonzero(grad >= config.grad_threshold)
-        candidates = candidates[np.argsort(-grad[candidates], kind="stable")][:room]
-        chosen[candidates] = True
-    big = largest > config.percent_dense * extent
-    clone, split = chosen & ~big, chosen & big
-
-    parts, sources = [data.subset(~split)], [np.flatnonzero(~split)]
-    parts.append(data.subset(clone))
-    sources.append(np.full(int(clone.sum()), -1))
-    if split.any():
-        parent = data.subset(split)
-        rot = _quat_matrices(parent.quats.astype(np.float64))
-        for _ in range(2):
-            local = rng.normal(size=(parent.num, 3)) * np.exp(parent.log_scales)
-            child = dataclasses.replace(parent, means=(parent.means + np.einsum("nij,nj->ni", rot, local)).astype(
-                np.float32), log_scales=(parent.log_scales - np.log(SPLIT_SHRINK)).astype(np.float32))
-            parts.append(child)
-            sources.append(np.full(parent.num, -1))
-    grown = GaussianSplatData.join(parts)
-    source = np.concatenate(sources)
-    alive = (sigmoid(grown.opacity_logits) >= config.min_opacity) & (
-        np.exp(grown.log_scales.max(axis=1)) <= config.max_scale * extent)
-    counts = {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((~alive).sum())}
-    return grown.subset(alive), source[alive], counts
-
-
-def _padded(data: GaussianSplatData, size: int) -> tuple[Gaussians, jax.Array]:
-    """The set padded to ``size`` rows (transparent padding) and its valid mask (size,)."""
-    pad = size - data.num
-
-    def cat(x, fill):
-        return jnp.asarray(np.concatenate([x, np.full((pad,) + x.shape[1:], fill, np.float32)]), jnp.float32)
-
-    g = Gaussians(means=cat(data.means, 0.0), quats=cat(data.quats, 1.0), log_scales=cat(data.log_scales, -10.0),
-                  opacity_logits=cat(data.opacity_logits, splat_fit.PAD_OPACITY_LOGIT), sh=cat(data.sh, 0.0))
-    return g, jnp.asarray(np.arange(size) < data.num)
-
-
-def _carry_state(state, source: np.ndarray, size: int):
-    """Adam moments of the rows ``source`` (−1: zeros), padded to ``size``."""
-    index = jnp.asarray(np.concatenate([source, np.full(size - len(source), -1)]))
-
-    def gather(x):
-        if jnp.ndim(x) == 0:
-            return x
-        picked = x[jnp.maximum(index, 0)]
-        return jnp.where((index >= 0).reshape((-1,) + (1,) * (x.ndim - 1)), picked, 0)
-
-    return jax.tree.map(gather, state)
-
-
-def _learning_rates(config: FitConfig, extent: float, step: int) -> Gaussians:
-    t = step / max(1, config.steps - 1)
-    position = config.lr_position * extent * (config.lr_position_final / config.lr_position) ** t
-    sh = np.full((num_sh_coeffs(config.sh_degree), 1), config.lr_colour / 20.0, np.float32)
-    sh[0] = config.lr_colour
-    return Gaussians(means=jnp.float32(position), quats=jnp.float32(config.lr_rotation),
-                     log_scales=jnp.float32(config.lr_scale), opacity_logits=jnp.float32(config.lr_opacity),
-                     sh=jnp.asarray(sh))
-
-
-def _sh_mask(config: FitConfig, step: int) -> jax.Array:
-    degree = min(config.sh_degree, step // config.sh_band_interval)
-    return jnp.asarray((np.arange(num_sh_coeffs(config.sh_degree)) < num_sh_coeffs(degree))[:, None], jnp.float32)
-
-
-_train_step = jax.jit(splat_fit.train_step, static_argnames=("config", "dssim_weight"))
-_render_views = jax.jit(splat_fit.render_views, static_argnames=("width", "height", "config"))
-
-
-def _grow(raster: RasterConfig, needed: int) -> RasterConfig:
-    return grown_capacity(raster, needed, "fit at a lower resolution or with fewer Gaussians")
-
-
 def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitConfig = FitConfig(), seed: int = 0,
                   background=(0.0, 0.0, 0.0)) -> FitResult:
     """Fit 3DGS to the training views. images: V arrays (H, W, 3) in [0, 1], one size; cameras: V
@@ -271,83 +190,17 @@ def fit_gaussians(images: list[np.ndarray], cameras: list[Camera], config: FitCo
     rng = np.random.default_rng(seed)
     _, extent = scene_region(cameras)
     data = random_init(images, cameras, config, rng)
-    initial = data.num
-    width, height = cameras[0].width, cameras[0].height
-    Ks = jnp.asarray(np.stack([c.K for c in cameras]), jnp.float32)
-    w2cs = jnp.asarray(np.stack([c.world_to_camera for c in cameras]), jnp.float32)
-    targets = jnp.asarray(np.stack(images), jnp.float32)
-    bg = jnp.asarray(background, jnp.float32)
-    size = gaussian_bucket(data.num)
-    params, valid = _padded(data, size)
-    state = splat_fit.init_state(params)
-    raster = RasterConfig(capacity=max(MIN_CAPACITY, next_power_of_two(4 * size)))
-    grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
-    order: list[int] = []
-    losses, events, buckets = [], [], {size}
-    retries, t0 = 0, time.perf_counter()
-    programs: set = set()
-    first_calls, later_calls = [], []  # seconds of steps that compiled their program, and of the others
-    step = 0
-    while step < config.steps:
-        if not order:
-            order = list(rng.permutation(len(cameras)))
-        key, t_step = (size, raster.capacity), time.perf_counter()
-        out = _train_step(params, state, _learning_rates(config, extent, step), valid, _sh_mask(config, step),
-                          Ks, w2cs, targets, jnp.int32(order[0]), bg, grad_sum, seen, config=raster,
-                          dssim_weight=config.dssim_weight)
-        overflow = bool(out[6])  # waits for the step
-        (later_calls if key in programs else first_calls).append(time.perf_counter() - t_step)
-        programs.add(key)
-        if overflow:  # the gradient is incomplete; grow and repeat the step
-            raster = _grow(raster, int(out[7]))
-            retries += 1
-            continue
-        order.pop(0)
-        params, state, loss, grad_sum, seen = out[:5]
-        losses.append(float(loss))
-        step += 1
-        if (config.densify_start * config.steps <= step < config.densify_stop * config.steps
-                and step % config.densify_interval == 0):
-            n = int(valid.sum())
-            host = GaussianSplatData.from_kernel(jax.tree.map(lambda x: x[:n], params))
-            grad = np.asarray(grad_sum[:n]) / np.maximum(np.asarray(seen[:n]), 1.0)
-            host, source, counts = densify_and_prune(host, grad, extent, config, rng)
-            size = gaussian_bucket(host.num)
-            buckets.add(size)
-            params, valid = _padded(host, size)
-            state = _carry_state(state, source, size)
-            grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
-            events.append({"step": step, "gaussians": host.num, **counts})
-    wall_s = time.perf_counter() - t0
-    step_s = float(np.median(later_calls)) if later_calls else 0.0
-
-    n = int(valid.sum())
-    fitted = GaussianSplatData.from_kernel(jax.tree.map(lambda x: x[:n], params))
-    fitted = fitted.subset(sigmoid(fitted.opacity_logits) >= config.min_opacity)
-    psnrs = train_psnr(fitted, Ks, w2cs, targets, bg, width, height, raster)
-    record = {"steps": config.steps, "seed": seed, "gaussians": fitted.num, "initial_gaussians": initial, "train_psnr": round(float(np.mean(psnrs)), 3),
-        "train_psnr_per_view": np.round(psnrs, 3).tolist(), "loss_first": losses[0], "loss_last": losses[-1],
-        "densify": events, "buckets": sorted(buckets), "capacity": raster.capacity, "capacity_retries": retries,
-        "programs": len(programs), "backend": jax.default_backend(), "device": str(jax.devices()[0]),
-        "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
-        # first calls less a step each; ~0 when this process compiled the programs for an earlier fit
-        "compile_s": round(max(0.0, sum(first_calls) - len(first_calls) * step_s), 3),
-        "run_s": round(wall_s - sum(first_calls) + len(first_calls) * step_s, 3),
-        "config": dataclasses.asdict(config)}
+    views = Views.of([np.asarray(im, np.float32) for im in images], cameras)
+    trained = train_gaussians(data, views, extent, config.training(), rng, background)
+    fitted = trained.gaussians.subset(sigmoid(trained.gaussians.opacity_logits) >= config.min_opacity)
+    psnrs = views_psnr(fitted, views, background, trained.raster)
+    t = trained.record
+    record = {"steps": config.steps, "seed": seed, "gaussians": fitted.num, "initial_gaussians": data.num,
+              "train_psnr": round(float(np.mean(psnrs)), 3), "train_psnr_per_view": np.round(psnrs, 3).tolist(),
+              **{k: t[k] for k in ("loss_first", "loss_last", "densify", "buckets", "capacity", "capacity_retries",
+                                   "programs", "backend", "device", "wall_s", "step_s_median", "compile_s", "run_s")},
+              "config": dataclasses.asdict(config)}
     return FitResult(fitted, record)
-
-
-def train_psnr(data: GaussianSplatData, Ks, w2cs, targets, bg, width: int, height: int,
-               raster: RasterConfig) -> np.ndarray:
-    """(V,) PSNR of the set rendered in every training view against its image."""
-    params, valid = _padded(data, gaussian_bucket(data.num))
-    while True:
-        rgb, overflow = _render_views(params, valid, Ks, w2cs, bg, width=width, height=height, config=raster)
-        if not bool(overflow):
-            break
-        raster = _grow(raster, 2 * raster.capacity)
-    mse = np.mean((np.asarray(rgb, np.float64) - np.asarray(targets, np.float64)) ** 2, axis=(1, 2, 3))
-    return 10.0 * np.log10(1.0 / np.maximum(mse, 1e-12))
 
 
 def read_training_views(scene_dir: Path) -> tuple[list[np.ndarray], list[Camera]]:

@@ -1,0 +1,137 @@
+"""Between 3DGS training steps, on the host: clone, split, prune, reset opacities, pad to buckets.
+
+The rules are those of the reference implementation (Kerbl et al. 2023) and gsplat's
+``DefaultStrategy``:
+
+- a Gaussian whose mean screen-space gradient reaches ``grad_threshold`` is *cloned* (an
+  identical copy is added) when its largest axis is at most ``percent_dense`` × the scene
+  extent, else *split*: it is replaced by two children drawn from it (offset by a sample of
+  itself, scales / 1.6); the highest gradients go first when ``max_gaussians`` leaves room for
+  fewer;
+- then Gaussians below ``min_opacity``, and (``prune_large``) those whose largest axis exceeds
+  ``max_scale`` × the extent, are *pruned*;
+- an *opacity reset* clamps every opacity to a small ceiling and zeroes its Adam moments, so
+  Gaussians that are not needed fade and are pruned.
+
+Gaussians that densification creates start with zero Adam moments; the others keep theirs.
+Arrays live on the device padded to power-of-two buckets (``phirie_jax.render.gaussian_bucket``)
+with transparent padding and a ``valid`` mask, so a training compiles a handful of programs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Protocol
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kernels import splat_fit
+from kernels.gaussians import Gaussians
+from phirie_jax.geometry import sigmoid
+from phirie_jax.types import GaussianSplatData
+
+SPLIT_SHRINK = 1.6  # a split Gaussian's children have its scale / this (3DGS)
+PAD_LOG_SCALE = -10.0
+
+
+class DensifyRule(Protocol):
+    """The thresholds densification reads (``TrainConfig`` and the synthetic ``FitConfig`` have them)."""
+
+    grad_threshold: float   # mean screen-space gradient (NDC units) that densifies
+    percent_dense: float    # × extent: larger Gaussians are split, smaller ones cloned
+    min_opacity: float      # pruned below
+    max_scale: float        # × extent: pruned above (largest axis)
+    max_gaussians: int      # no growth past this count
+
+
+def quat_matrices(q: np.ndarray) -> np.ndarray:
+    """(N, 4) wxyz, any length → (N, 3, 3) rotations."""
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
+
+
+def densify_and_prune(data: GaussianSplatData, grad: np.ndarray, extent: float, rule: DensifyRule, rng,
+                      densify: bool = True, prune_large: bool = True) -> tuple[GaussianSplatData, np.ndarray, dict]:
+    """Clone, split and prune (module docstring). grad (N,) mean screen gradient of each Gaussian.
+
+    Returns the new set, the source row (M,) of each new Gaussian in ``data`` (−1 for the Gaussians
+    densification created: their Adam moments start at zero, as in 3DGS) and the counts."""
+    n = data.num
+    largest = np.exp(data.log_scales.max(axis=1))
+    chosen = np.zeros(n, bool)
+    if densify:
+        room = max(0, rule.max_gaussians - n)  # clone and split both add one Gaussian net
+        candidates = np.flatnonzero(grad >= rule.grad_threshold)
+        candidates = candidates[np.argsort(-grad[candidates], kind="stable")][:room]
+        chosen[candidates] = True
+    big = largest > rule.percent_dense * extent
+    clone, split = chosen & ~big, chosen & big
+
+    parts, sources = [data.subset(~split)], [np.flatnonzero(~split)]
+    parts.append(data.subset(clone))
+    sources.append(np.full(int(clone.sum()), -1))
+    if split.any():
+        parent = data.subset(split)
+        rot = quat_matrices(parent.quats.astype(np.float64))
+        for _ in range(2):
+            local = rng.normal(size=(parent.num, 3)) * np.exp(parent.log_scales)
+            child = dataclasses.replace(parent, means=(parent.means + np.einsum("nij,nj->ni", rot, local)).astype(
+                np.float32), log_scales=(parent.log_scales - np.log(SPLIT_SHRINK)).astype(np.float32))
+            parts.append(child)
+            sources.append(np.full(parent.num, -1))
+    grown = GaussianSplatData.join(parts)
+    source = np.concatenate(sources)
+    alive = sigmoid(grown.opacity_logits) >= rule.min_opacity
+    if prune_large:
+        alive &= np.exp(grown.log_scales.max(axis=1)) <= rule.max_scale * extent
+    counts = {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((~alive).sum())}
+    return grown.subset(alive), source[alive], counts
+
+
+def padded(data: GaussianSplatData, size: int) -> tuple[Gaussians, jax.Array]:
+    """The set padded to ``size`` rows (transparent padding) and its valid mask (size,)."""
+    pad = size - data.num
+
+    def cat(x, fill):
+        return jnp.asarray(np.concatenate([x, np.full((pad,) + x.shape[1:], fill, np.float32)]), jnp.float32)
+
+    g = Gaussians(means=cat(data.means, 0.0), quats=cat(data.quats, 1.0), log_scales=cat(data.log_scales, PAD_LOG_SCALE),
+                  opacity_logits=cat(data.opacity_logits, splat_fit.PAD_OPACITY_LOGIT), sh=cat(data.sh, 0.0))
+    return g, jnp.asarray(np.arange(size) < data.num)
+
+
+def carry_state(state, source: np.ndarray, size: int):
+    """Adam moments of the rows ``source`` (−1: zeros), padded to ``size``."""
+    index = jnp.asarray(np.concatenate([source, np.full(size - len(source), -1)]))
+
+    def gather(x):
+        if jnp.ndim(x) == 0:
+            return x
+        picked = x[jnp.maximum(index, 0)]
+        return jnp.where((index >= 0).reshape((-1,) + (1,) * (x.ndim - 1)), picked, 0)
+
+    return jax.tree.map(gather, state)
+
+
+def reset_opacity(params: Gaussians, state: Any, ceiling: float) -> tuple[Gaussians, Any]:
+    """Opacities clamped to ``ceiling`` (an opacity, not a logit) and their Adam moments zeroed.
+
+    ``state`` is ``kernels.splat_fit.optimizer()``'s: (Adam's state, the scale's)."""
+    logit = float(np.log(ceiling / (1.0 - ceiling)))
+    adam, *rest = state
+
+    def zeroed(moments: Gaussians) -> Gaussians:
+        return moments.replace(opacity_logits=jnp.zeros_like(moments.opacity_logits))
+
+    adam = adam._replace(mu=zeroed(adam.mu), nu=zeroed(adam.nu))
+    return params.replace(opacity_logits=jnp.minimum(params.opacity_logits, logit)), (adam, *rest)
+
+
+def unpadded(params: Gaussians, valid: jax.Array) -> GaussianSplatData:
+    """The valid rows of a padded set (valid rows come first), on the host."""
+    n = int(valid.sum())
+    return GaussianSplatData.from_kernel(jax.tree.map(lambda x: x[:n], params))

@@ -1,0 +1,371 @@
+"""3DGS training: the loop around ``kernels.splat_fit.train_step``, with checkpoints to resume from.
+
+``train_gaussians`` runs ``TrainConfig``'s schedule (``phirie_jax.capture.config``) from an
+initial set: one training view per step in a seeded order (each epoch a fresh permutation of the
+views), the per-field learning rates with the position's exponential decay, SH bands switched on
+every ``sh_band_interval`` steps, and after the step numbered ``s`` (counting from 1):
+
+- densification (``phirie_jax.capture.densify``) when ``densify_from ≤ s < densify_until`` and
+  ``s`` is a multiple of ``densify_interval``, on the screen gradients accumulated since the last;
+- an opacity reset when ``s`` is a multiple of ``opacity_reset_interval`` (and ``s < densify_until``);
+- a checkpoint when ``s`` is a multiple of ``checkpoint_interval``, and at the end.
+
+A step whose tile intersections overflow the buffer is repeated with a larger one. The
+training state is a pytree (the padded Gaussians, Adam's state, the densification statistics);
+a checkpoint holds its valid rows, the random generator's state, the view order and what has
+been recorded, written to a temporary name and renamed (``phirie_jax.io.atomic``). Resuming
+from it continues exactly: on one machine, a run killed after a checkpoint and resumed ends
+with the same Gaussians, bit for bit, as a run that was never stopped.
+
+The synthetic scenes' fitter (``phirie_jax.synthetic.fitted``) runs this loop with its own
+schedule and a random initialization; ``phirie capture`` with gsplat's and the SfM points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kernels import splat_fit
+from kernels.gaussians import Gaussians
+from kernels.raster import RasterConfig
+from kernels.sh import num_sh_coeffs, rgb_to_sh_dc
+from phirie_jax.capture.config import TrainConfig
+from phirie_jax.capture.densify import carry_state, densify_and_prune, padded, reset_opacity, unpadded
+from phirie_jax.errors import SceneInputError
+from phirie_jax.io.atomic import write_bytes
+from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
+from phirie_jax.types import Camera, GaussianSplatData
+
+MIN_CAPACITY = 1 << 16         # tile intersections of the first program
+CAPACITY_PER_GAUSSIAN = 4      # ... or this many per (padded) Gaussian, if more
+EXTENT_MARGIN = 1.1            # gsplat's scene scale: 1.1 × the largest camera distance from their mean
+RESET_CEILING = 2.0            # an opacity reset clamps opacities to this × min_opacity (gsplat)
+CHECKPOINT_VERSION = 1
+
+_STATIC = ("config", "dssim_weight", "exact_screen_gradient")
+_train_step = jax.jit(splat_fit.train_step, static_argnames=_STATIC)
+_train_step_donated = jax.jit(splat_fit.train_step, static_argnames=_STATIC, donate_argnums=(0, 1, 10, 11))
+_render_view = jax.jit(lambda params, valid, K, w2c, bg, *, width, height, config: splat_fit.render_views(
+    params, valid, K[None], w2c[None], bg, width=width, height=height, config=config), static_argnames=(
+    "width", "height", "config"))
+
+
+@dataclasses.dataclass(frozen=True)
+class Views:
+    """Training views on the device, one image size."""
+
+    Ks: jax.Array                # (V, 3, 3)
+    world_to_cameras: jax.Array  # (V, 4, 4)
+    images: jax.Array            # (V, H, W, 3) float32 in [0, 1] or uint8
+
+    @property
+    def count(self) -> int:
+        return int(self.Ks.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @staticmethod
+    def of(images: list[np.ndarray], cameras: list[Camera]) -> Views:
+        """images: V arrays (H, W, 3), float in [0, 1] or uint8, one size; cameras: V pinhole cameras of it."""
+        sizes = {(c.width, c.height) for c in cameras} | {(im.shape[1], im.shape[0]) for im in images}
+        if len(sizes) != 1:
+            raise ValueError(f"every training view must have one size (found {sorted(sizes)})")
+        stacked = np.stack(images)
+        return Views(Ks=jnp.asarray(np.stack([c.K for c in cameras]), jnp.float32),
+                     world_to_cameras=jnp.asarray(np.stack([c.world_to_camera for c in cameras]), jnp.float32),
+                     images=jnp.asarray(stacked, jnp.uint8 if stacked.dtype == np.uint8 else jnp.float32))
+
+
+@dataclasses.dataclass(frozen=True)
+class Trained:
+    gaussians: GaussianSplatData  # every Gaussian of the last step (nothing pruned after it)
+    raster: RasterConfig          # a capacity that held every training view
+    losses: list[float]           # one per step (of every run that led here)
+    record: dict                  # counts, densification events, times (module docstring)
+
+
+def camera_extent(cameras: list[Camera]) -> float:
+    """gsplat's scene scale: 1.1 × the largest distance of a camera centre from their mean."""
+    centres = np.array([c.center for c in cameras])
+    return EXTENT_MARGIN * float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
+
+
+def init_from_points(points: np.ndarray, colours: np.ndarray, config: TrainConfig, rng) -> GaussianSplatData:
+    """One Gaussian per SfM point (gsplat's ``init_type="sfm"``): points (P, 3), colours (P, 3) in [0, 1].
+
+    Isotropic, σ = the root mean square distance to the 3 nearest points; random rotation;
+    opacity ``config.init_opacity``; SH DC from the colour, the higher bands zero."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64)
+    dist, _ = cKDTree(points).query(points, k=min(4, len(points)))
+    sigma = np.sqrt(np.mean(np.asarray(dist)[:, 1:] ** 2, axis=1))
+    sigma = np.maximum(sigma, np.finfo(np.float32).tiny ** 0.25)  # coincident points: a tiny, finite σ
+    n, k = len(points), num_sh_coeffs(config.sh_degree)
+    sh = np.zeros((n, k, 3), np.float32)
+    sh[:, 0] = rgb_to_sh_dc(np.asarray(colours, np.float64))
+    logit = np.log(config.init_opacity / (1 - config.init_opacity))
+    return GaussianSplatData(
+        means=points.astype(np.float32), quats=rng.uniform(size=(n, 4)).astype(np.float32),
+        log_scales=np.repeat(np.log(sigma)[:, None], 3, axis=1).astype(np.float32),
+        opacity_logits=np.full(n, logit, np.float32), sh=sh)
+
+
+def learning_rates(config: TrainConfig, extent: float, step: int) -> Gaussians:
+    """Per-field rates at ``step`` (0-based): the position's decays exponentially over the run."""
+    t = step / max(1, config.steps - 1)
+    position = config.lr_position * extent * (config.lr_position_final / config.lr_position) ** t
+    sh = np.full((num_sh_coeffs(config.sh_degree), 1), config.lr_colour / 20.0, np.float32)
+    sh[0] = config.lr_colour
+    return Gaussians(means=jnp.float32(position), quats=jnp.float32(config.lr_rotation),
+                     log_scales=jnp.float32(config.lr_scale), opacity_logits=jnp.float32(config.lr_opacity),
+                     sh=jnp.asarray(sh))
+
+
+def sh_mask(config: TrainConfig, step: int) -> jax.Array:
+    """(K, 1) 1 for the coefficients of the bands on at ``step``."""
+    degree = min(config.sh_degree, step // config.sh_band_interval)
+    return jnp.asarray((np.arange(num_sh_coeffs(config.sh_degree)) < num_sh_coeffs(degree))[:, None], jnp.float32)
+
+
+def peak_device_memory_mb() -> float | None:
+    """The device's peak allocated memory so far in MiB (None where the backend does not say: a CPU)."""
+    stats = jax.local_devices()[0].memory_stats()
+    if not stats or "peak_bytes_in_use" not in stats:
+        return None
+    return round(stats["peak_bytes_in_use"] / 2**20, 1)
+
+
+@dataclasses.dataclass
+class _Loop:
+    """The host side of the training state (the device side: params, Adam state, statistics)."""
+
+    step: int = 0
+    order: list[int] = dataclasses.field(default_factory=list)
+    losses: list[float] = dataclasses.field(default_factory=list)
+    events: list[dict] = dataclasses.field(default_factory=list)
+    resets: list[int] = dataclasses.field(default_factory=list)
+    buckets: set[int] = dataclasses.field(default_factory=set)
+    retries: int = 0
+
+
+def fingerprint(config: TrainConfig, views: Views, init: GaussianSplatData, extent: float) -> str:
+    """What a checkpoint must have been made from to be resumed: the config, the views' count
+    and size, the initial set and the extent (a digest)."""
+    digest = hashlib.sha256(json.dumps(dataclasses.asdict(config), sort_keys=True).encode())
+    digest.update(np.float64([views.count, views.width, views.height, extent]).tobytes())
+    for field in ("means", "log_scales", "opacity_logits"):
+        digest.update(np.ascontiguousarray(getattr(init, field)).tobytes())
+    return digest.hexdigest()[:16]
+
+
+class _Written:
+    """A checkpoint being written by a thread: ``wait()`` joins it and raises what it raised."""
+
+    def __init__(self, write: Callable[[], None]):
+        self.error: BaseException | None = None
+
+        def run():
+            try:
+                write()
+            except BaseException as err:  # noqa: BLE001 (handed to wait(), which raises it)
+                self.error = err
+
+        self.thread = threading.Thread(target=run, name="checkpoint", daemon=False)
+        self.thread.start()
+
+    def wait(self) -> None:
+        self.thread.join()
+        if self.error is not None:
+            raise self.error
+
+
+def save_checkpoint(path: Path, params: Gaussians, valid, state, grad_sum, seen, raster: RasterConfig,
+                    loop: _Loop, rng, stamp: str) -> _Written:
+    """The training state after ``loop.step`` steps (module docstring), written atomically. The
+    valid rows are copied to the host here; the file is written by a thread (training goes on
+    meanwhile): ``wait()`` on the result before relying on the file."""
+    n, size = int(valid.sum()), int(valid.shape[0])
+
+    def host(x):  # a host copy of the valid rows: the device buffers may be donated to the next step
+        x = jnp.asarray(x)
+        return np.array(x[:n] if x.ndim and x.shape[0] == size else x)
+
+    arrays = {f"params.{k}": host(getattr(params, k)) for k in Gaussians.__dataclass_fields__}
+    arrays.update({f"state.{i}": host(leaf) for i, leaf in enumerate(jax.tree.leaves(state))})
+    arrays["grad_sum"], arrays["seen"] = host(grad_sum), host(seen)
+    meta = {"version": CHECKPOINT_VERSION, "stamp": stamp, "step": loop.step, "size": size, "n": n,
+            "capacity": raster.capacity, "rng": rng.bit_generator.state, "order": [int(v) for v in loop.order],
+            "losses": loop.losses, "events": loop.events, "resets": loop.resets, "buckets": sorted(loop.buckets),
+            "retries": loop.retries}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+
+    def write() -> None:
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        write_bytes(path, buf.getvalue())
+
+    return _Written(write)
+
+
+def load_checkpoint(path: Path, stamp: str, rng, raster: RasterConfig):
+    """(params, valid, state, grad_sum, seen, raster, loop) from ``save_checkpoint``'s file;
+    ``rng`` takes the saved state. A checkpoint of another training is a ``SceneInputError``."""
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files}
+    meta = json.loads(arrays.pop("meta").tobytes())
+    if meta.get("version") != CHECKPOINT_VERSION or meta.get("stamp") != stamp:
+        raise SceneInputError(path, "stamp", "a checkpoint of another training (other photos, SfM or settings): "
+                              "run without --resume to start again")
+    n, size = meta["n"], meta["size"]
+    data = GaussianSplatData(**{k: arrays[f"params.{k}"] for k in Gaussians.__dataclass_fields__})
+    params, valid = padded(data, size)
+    leaves, treedef = jax.tree.flatten(splat_fit.init_state(params))
+
+    def grown(x):
+        return jnp.asarray(np.concatenate([x, np.zeros((size - n,) + x.shape[1:], x.dtype)]) if x.ndim and
+                           x.shape[0] == n and n != size else x)
+
+    state = jax.tree.unflatten(treedef, [grown(arrays[f"state.{i}"]).astype(leaf.dtype)
+                                         for i, leaf in enumerate(leaves)])
+    rng.bit_generator.state = meta["rng"]
+    loop = _Loop(step=meta["step"], order=meta["order"], losses=meta["losses"], events=meta["events"],
+                 resets=meta["resets"], buckets=set(meta["buckets"]), retries=meta["retries"])
+    return (params, valid, state, grown(arrays["grad_sum"]), grown(arrays["seen"]),
+            dataclasses.replace(raster, capacity=meta["capacity"]), loop)
+
+
+def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config: TrainConfig, rng,
+                    background=(0.0, 0.0, 0.0), *, checkpoint: Path | None = None, resume: bool = False,
+                    on_step: Callable[[int, float, int], None] | None = None, donate: bool = False) -> Trained:
+    """Train ``init`` on ``views`` (module docstring). extent: the scene scale the position's rate
+    and the size thresholds are relative to; rng: a NumPy generator (view order, split offsets).
+
+    checkpoint: where checkpoints go; with ``resume``, training continues from the one there.
+    on_step(step, loss, gaussians) is called after every step (progress). donate: let each step
+    reuse its inputs' device memory (smaller peak; the inputs are consumed).
+    """
+    stamp = fingerprint(config, views, init, extent)
+    size = gaussian_bucket(init.num)
+    params, valid = padded(init, size)
+    state = splat_fit.init_state(params)
+    raster = RasterConfig(capacity=max(MIN_CAPACITY, next_power_of_two(CAPACITY_PER_GAUSSIAN * size)))
+    grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
+    loop = _Loop(buckets={size})
+    resumed_at = None
+    if resume and checkpoint is not None and Path(checkpoint).is_file():
+        params, valid, state, grad_sum, seen, raster, loop = load_checkpoint(Path(checkpoint), stamp, rng, raster)
+        resumed_at = loop.step
+    bg = jnp.asarray(background, jnp.float32)
+    step_fn = _train_step_donated if donate else _train_step
+    programs: set = set()
+    first_calls, later_calls = [], []  # seconds of steps that compiled their program, and of the others
+    t0 = time.perf_counter()
+    written: _Written | None = None   # the checkpoint being written
+    try:
+        while loop.step < config.steps:
+            if not loop.order:
+                loop.order = list(rng.permutation(views.count))
+            size = int(valid.shape[0])
+            key, t_step = (size, raster.capacity), time.perf_counter()
+            out = step_fn(params, state, learning_rates(config, extent, loop.step), valid, sh_mask(config, loop.step),
+                          views.Ks, views.world_to_cameras, views.images, jnp.int32(loop.order[0]), bg, grad_sum, seen,
+                          config=raster, dssim_weight=config.dssim_weight,
+                          exact_screen_gradient=config.exact_screen_gradient)
+            params, state, loss, grad_sum, seen = out[:5]
+            overflow = bool(out[6])  # waits for the step
+            (later_calls if key in programs else first_calls).append(time.perf_counter() - t_step)
+            programs.add(key)
+            if overflow:  # nothing changed; grow and repeat the step
+                raster = grown_capacity(raster, int(out[7]), "train at a lower resolution or with fewer Gaussians")
+                loop.retries += 1
+                continue
+            loop.order.pop(0)
+            loop.losses.append(float(loss))
+            loop.step += 1
+            s = loop.step
+            if config.densify_from <= s < config.densify_until and s % config.densify_interval == 0:
+                host = unpadded(params, valid)
+                n = host.num
+                grad = np.asarray(grad_sum[:n]) / np.maximum(np.asarray(seen[:n]), 1.0)
+                reset = config.opacity_reset_interval
+                host, source, counts = densify_and_prune(host, grad, extent, config, rng,
+                                                         prune_large=not reset or s > reset)
+                size = gaussian_bucket(host.num)
+                loop.buckets.add(size)
+                params, valid = padded(host, size)
+                state = carry_state(state, source, size)
+                grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
+                loop.events.append({"step": s, "gaussians": host.num, **counts})
+            if config.opacity_reset_interval and s % config.opacity_reset_interval == 0 and s < config.densify_until:
+                params, state = reset_opacity(params, state, RESET_CEILING * config.min_opacity)
+                loop.resets.append(s)
+            if checkpoint is not None and ((config.checkpoint_interval and s % config.checkpoint_interval == 0)
+                                           or s == config.steps):
+                if written is not None:
+                    written.wait()
+                written = save_checkpoint(Path(checkpoint), params, valid, state, grad_sum, seen, raster, loop, rng,
+                                          stamp)
+            if on_step is not None:
+                on_step(s, loop.losses[-1], int(valid.sum()))
+    finally:  # a checkpoint is whole on disk before anything else happens, a kill included
+        if written is not None:
+            written.wait()
+    wall_s = time.perf_counter() - t0
+    step_s = float(np.median(later_calls)) if later_calls else 0.0
+    gaussians = unpadded(params, valid)
+    record = {
+        "steps": config.steps, "gaussians": gaussians.num, "initial_gaussians": init.num,
+        "loss_first": loop.losses[0] if loop.losses else None, "loss_last": loop.losses[-1] if loop.losses else None,
+        "densify": loop.events, "opacity_resets": loop.resets, "buckets": sorted(loop.buckets),
+        "capacity": raster.capacity, "capacity_retries": loop.retries, "programs": len(programs),
+        "backend": jax.default_backend(), "device": str(jax.devices()[0]), "resumed_at": resumed_at,
+        "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
+        # first calls less a step each; ~0 when this process compiled the programs for an earlier run
+        "compile_s": round(max(0.0, sum(first_calls) - len(first_calls) * step_s), 3),
+        "run_s": round(wall_s - sum(first_calls) + len(first_calls) * step_s, 3)}
+    return Trained(gaussians, raster, list(loop.losses), record)
+
+
+def views_psnr(data: GaussianSplatData, views: Views, background, raster: RasterConfig, clip: bool = False
+               ) -> np.ndarray:
+    """(V,) PSNR of the set rendered, every SH band on, in each view against its image; clip: the
+    renders clamped to [0, 1] first (as gsplat's evaluation does)."""
+    params, valid = padded(data, gaussian_bucket(data.num))
+    bg = jnp.asarray(background, jnp.float32)
+    psnr = []
+    for K, w2c, image in zip(views.Ks, views.world_to_cameras, views.images):  # one program for any view count
+        while True:
+            rgb, overflow = _render_view(params, valid, K, w2c, bg, width=views.width, height=views.height,
+                                         config=raster)
+            if not bool(overflow):
+                break
+            raster = grown_capacity(raster, 2 * raster.capacity, "score at a lower resolution")
+        target = np.asarray(image, np.float64) / (255.0 if image.dtype == jnp.uint8 else 1.0)
+        rgb = np.asarray(rgb[0], np.float64)
+        mse = np.mean(((np.clip(rgb, 0.0, 1.0) if clip else rgb) - target) ** 2)
+        psnr.append(10.0 * np.log10(1.0 / max(mse, 1e-12)))
+    return np.asarray(psnr)
+
+
+def fraction_step(fraction: float, steps: int) -> int:
+    """The first whole step s with s ≥ fraction × steps (a schedule given in fractions of the run)."""
+    return math.ceil(fraction * steps)
