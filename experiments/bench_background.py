@@ -8,7 +8,8 @@ programs it compiled and its crop renders; prints one JSON object.
 ``--resume`` runs leave it so); it is copied to ``--work`` and the background stage run there as the
 pipeline runs it (``run_convert(..., stages=("background",))``: the frame is decided again, then
 the background). CPU seconds are the process's (every thread), so they say what a step costs on a
-shared machine better than its wall time. The script imports only what every version of the stage
+shared machine better than its wall time; the XLA compilations are counted per step (on a GPU
+each costs tens of milliseconds, and a count that grows with the objects is a cost per object). The script imports only what every version of the stage
 has, so the same file measures an older checkout on ``PYTHONPATH`` (the before of a change).
 """
 
@@ -42,11 +43,14 @@ def main() -> None:
     from phirie_jax.pipeline import run_convert
 
     compiles = {"count": 0, "seconds": 0.0}
+    step_compiles: dict[str, dict] = {}
+    active: list[str] = []
 
     def listener(event, duration, **_):
         if event == COMPILE_EVENT:
-            compiles["count"] += 1
-            compiles["seconds"] += duration
+            for record in [compiles] + [step_compiles.setdefault(n, {"count": 0, "seconds": 0.0}) for n in active]:
+                record["count"] += 1
+                record["seconds"] += duration
 
     jax.monitoring.register_event_duration_secs_listener(listener)
     cpu: dict[str, float] = {}
@@ -55,8 +59,12 @@ def main() -> None:
     @contextlib.contextmanager
     def timed_with_cpu(self, name):
         start = time.process_time()
-        with timed(self, name):
-            yield
+        active.append(name)
+        try:
+            with timed(self, name):
+                yield
+        finally:
+            active.remove(name)
         cpu[name] = cpu.get(name, 0.0) + time.process_time() - start
 
     Manifest.timed = timed_with_cpu
@@ -76,6 +84,8 @@ def main() -> None:
           "step_cpu_s": {k: round(v, 2) for k, v in cpu.items() if k.startswith("background")},
           "per_object_s": {k: round(v / max(len(kept), 1), 3) for k, v in steps.items()},
           "compiles": {"count": compiles["count"], "seconds": round(compiles["seconds"], 2)},
+          "step_compiles": {k: {"count": v["count"], "seconds": round(v["seconds"], 2)}
+                            for k, v in step_compiles.items() if k.startswith("background")},
           "renders": b.get("renders"), "render_launches": b.get("render_launches"),
           "frames": len((b.get("targets") or {}).get("frames") or []),
           "removed": b["removed"], "filled": b["filled"],
