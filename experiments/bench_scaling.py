@@ -18,7 +18,10 @@ time on one device over run time on all: ``speedup_worlds`` (steps and render of
 ``speedup_droptests`` (MJX; ``speedup_droptests_warp`` for Warp). Per-world results are
 compared: the worlds' final state (qpos, qvel) and every image, the candidates' states after
 settling and at the end and their verdicts. ``equal_to_single_device`` is true when all of them
-are equal bit for bit; the largest differences are beside it.
+are equal bit for bit; the largest differences are beside it. A compiler may vectorise a row's
+sums differently for another batch size (XLA:CPU does: 8 worlds vmapped together against 2 per
+device), so ``first_device_rows`` also compares the first device's rows with one device running
+as many rows: that comparison isolates the sharding itself.
 
 The scene: ``--scene DIR``, a ``phirie convert`` output folder; when DIR has no ``scene.xml``
 the demo's scene is made there first (``phirie synth`` of the default preset, seed 0, into
@@ -38,6 +41,7 @@ program's own):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -164,7 +168,26 @@ def worlds_part(args, all_devices) -> dict:
     result["speedup_steps"] = round(rows[0]["step_s"] / rows[1]["step_s"], 3)
     result["speedup_frames"] = round(rows[0]["render_s"] / rows[1]["render_s"], 3)
     result["speedup"] = round(rows[0]["round_s"] / rows[1]["round_s"], 3)
+    if rows[1]["devices"] > 1:
+        result["first_device_rows"] = first_device_worlds(env, rows[1], args, throws, kept[1]["state"])
     return result
+
+
+def first_device_worlds(env, sharded: dict, args, throws: np.ndarray, state: dict) -> dict:
+    """The first device's worlds of the sharded run against one device stepping as many worlds
+    (the same vmapped size): equal bit for bit when the sharding itself changes nothing, whatever
+    a compiler makes of a different batch size."""
+    from phirie_jax.interact.batched import BatchedEnvironment
+
+    per = sharded["worlds_padded"] // sharded["devices"]
+    batch = BatchedEnvironment(env, per, devices=1)
+    batch.set_velocities(throws[:per])
+    for _ in range(1 + args.repeats):     # the step calls of ``bench_worlds``
+        batch.step(args.steps)
+    same = [np.array_equal(np.asarray(getattr(batch.data, name)), np.asarray(state[name])[:per])
+            for name in ("qpos", "qvel")]
+    return {"worlds": per, "equal": bool(all(same)),
+            "max_abs_qpos_difference": _largest(batch.data.qpos, np.asarray(state["qpos"])[:per])}
 
 
 # --- drop tests ----------------------------------------------------------------------------
@@ -202,6 +225,24 @@ def bench_mjx_drops(models, qpos0, config, repeats: int, devices) -> tuple[dict,
              "compile_s": round(compile_s, 2), "first_run_s": round(first, 4), "run_s": round(run_s, 4),
              "steps_per_s": round(steps / run_s, 1), "candidates_per_s": round(len(models) / run_s, 1)},
             (settled, final))
+
+
+def first_device_drops(models, qpos0, config, sharded: dict, states: tuple) -> dict:
+    """The first device's candidates of the sharded run against one device running as many rows
+    (``first_device_worlds``)."""
+    from phirie_jax.construct.physics import mjx_batch
+    from phirie_jax.construct.physics.droptest import bucket_template
+
+    per = min(len(models), sharded["batch"] // sharded["devices"])
+    mesh = BatchMesh.over(1)
+    template_model, template = bucket_template(1, config)
+    params = mjx_batch.stack_params(template_model, models[:per], config.vertex_budget)
+    args = mjx_batch.device_args(template, params, qpos0[:per], mesh)
+    out = mjx_batch.lower(template, params, qpos0[:per], config, mesh).compile()(*args)
+    settled, final = (np.asarray(o, np.float64) for o in out)
+    return {"candidates": per, "equal": bool(np.array_equal(settled, states[0][:per])
+                                             and np.array_equal(final, states[1][:per])),
+            "max_abs_qpos_difference": max(_largest(settled, states[0][:per]), _largest(final, states[1][:per]))}
 
 
 def bench_warp_drops(models, qpos0, config, repeats: int, devices: list[str]) -> tuple[dict, tuple]:
@@ -251,6 +292,8 @@ def droptests_part(args, all_devices) -> tuple[dict, dict | None]:
     result["one_device"], result["all_devices"] = rows
     result["comparison"] = compare_drops(models, qpos0, config, *kept, "mjx")
     result["speedup"] = round(rows[0]["run_s"] / rows[1]["run_s"], 3)
+    if rows[1]["devices"] > 1:
+        result["first_device_rows"] = first_device_drops(models, qpos0, config, rows[1], kept[1])
     ok, why = warp_batch.available()
     if args.skip_warp or not ok:
         return result, {"skipped": "--skip-warp" if args.skip_warp else why}
@@ -294,18 +337,19 @@ def main(argv=None) -> None:
               "device_kind": all_devices[0].device_kind, "jax": jax.__version__, "machine": platform.platform(),
               "cpus": os.cpu_count(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "load_average_at_start": list(os.getloadavg())}
-    if "worlds" in args.parts:
-        result["scene"] = str(args.scene)
-        made = ensure_scene(args.scene)
-        if made is not None:
-            result["scene_made_s"] = made
-        result["worlds"] = worlds_part(args, all_devices)
-        result["speedup_worlds"] = result["worlds"]["speedup"]
-    if "droptests" in args.parts:
-        result["droptests"], result["droptests_warp"] = droptests_part(args, all_devices)
-        result["speedup_droptests"] = result["droptests"]["speedup"]
-        if "speedup" in result["droptests_warp"]:
-            result["speedup_droptests_warp"] = result["droptests_warp"]["speedup"]
+    with contextlib.redirect_stdout(sys.stderr):   # stdout carries the JSON alone (Warp prints a banner)
+        if "worlds" in args.parts:
+            result["scene"] = str(args.scene)
+            made = ensure_scene(args.scene)
+            if made is not None:
+                result["scene_made_s"] = made
+            result["worlds"] = worlds_part(args, all_devices)
+            result["speedup_worlds"] = result["worlds"]["speedup"]
+        if "droptests" in args.parts:
+            result["droptests"], result["droptests_warp"] = droptests_part(args, all_devices)
+            result["speedup_droptests"] = result["droptests"]["speedup"]
+            if "speedup" in result["droptests_warp"]:
+                result["speedup_droptests_warp"] = result["droptests_warp"]["speedup"]
     compared = [result[k]["comparison"]["equal"] for k in ("worlds", "droptests", "droptests_warp")
                 if k in result and "comparison" in result[k]]
     result["equal_to_single_device"] = bool(compared) and all(compared)
