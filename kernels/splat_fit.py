@@ -79,7 +79,7 @@ def view_loss(params: Gaussians, valid: jax.Array, sh_mask: jax.Array, K: jax.Ar
 
 
 def as_float_image(image: jax.Array) -> jax.Array:
-    """(H, W, 3) uint8 → float32 in [0, 1]; a float image is returned as it is."""
+    """image (H, W, 3) uint8 → float32 in [0, 1]; a float image is returned as it is."""
     if image.dtype == jnp.uint8:
         return image.astype(jnp.float32) / 255.0
     return image

@@ -80,8 +80,12 @@ def test_a_users_masks_make_the_head_an_asset(tmp_path):
     assert [i["id"] for i in manifest["instances"]] == [1]
     (head,) = manifest["objects"]
     # kept as a body; on this cut-down capture the built-in shapes miss the head by more than the
-    # registration check's 1 cm, which the status says
+    # registration check's 1 cm, and the head (cut from its mount, its mass over the cut) may tip
+    # in the drop test depending on its CoACD parts: the status says both
     assert head["status"] == ("unverified" if head["unresolved_checks"] else "accepted"), head.get("reason")
-    assert set(head["unresolved_checks"]) <= {"registration"}, head["unresolved_checks"]
+    assert set(head["unresolved_checks"]) <= {"registration", "settling"}, head["unresolved_checks"]
+    if "settling" in head["unresolved_checks"]:
+        assert head["drop_test"]["stable"] is False and head["checks"]["settling"]["passed"] is False
+    assert head["checks"]["scale"]["passed"] and head["checks"]["support"]["passed"]
     assert read_gaussian_ply(tmp_path / "out" / head["visual"]).num > 1000
     assert manifest["background"]["removed"] > 3000   # the head's source Gaussians left the background
