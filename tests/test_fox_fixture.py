@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.info import outcome_lines
@@ -73,6 +74,7 @@ def test_automatic_masks_say_why_nothing_stands_on_a_support(tmp_path):
     assert any(line.startswith("no object instance found: no support plane") for line in lines), lines
 
 
+@pytest.mark.slow   # heavy: a whole conversion with CoACD of the 60K-triangle head
 def test_a_users_masks_make_the_head_an_asset(tmp_path):
     manifest = run_convert(FOX, tmp_path / "out", QUICK, masks="files")
     frame = manifest["frame"]

@@ -67,6 +67,7 @@ def test_fitted_gaussians_are_not_the_ideal_ones(fitted_dir):
     assert np.std(sigmoid(fitted.opacity_logits)) > 2 * np.std(sigmoid(ideal.opacity_logits[_flatness(ideal) < FLAT_RATIO]))
 
 
+@pytest.mark.slow   # heavy: a second fit of the scene
 def test_same_seed_same_fit(fitted_dir):
     images, cameras = read_training_views(fitted_dir)
     # a short fit (densifying at steps 5 and 10) of the fixture's shapes: it reuses its compiled programs

@@ -83,6 +83,7 @@ def test_a_checkpoint_of_another_training_is_refused(toy, tmp_path):
         _train(toy, checkpoint=checkpoint, resume=True)
 
 
+@pytest.mark.slow   # heavy: every view differentiated twice
 def test_screen_gradient_statistics_match_plain_autodiff(toy):
     """Two steps' densification statistics: ``seen`` counts the views that showed each Gaussian,
     ``grad_sum`` adds |dL/dμ₂ₓ · W/2, dL/dμ₂ᵧ · H/2| per view, with dL/dμ₂ (the step's, through the
