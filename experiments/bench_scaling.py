@@ -353,6 +353,7 @@ def main(argv=None) -> None:
     compared = [result[k]["comparison"]["equal"] for k in ("worlds", "droptests", "droptests_warp")
                 if k in result and "comparison" in result[k]]
     result["equal_to_single_device"] = bool(compared) and all(compared)
+    result["shardy_partitioner"] = bool(jax.config.jax_use_shardy_partitioner)   # off: GSPMD (kernels.sharding)
     result["load_average_at_end"] = list(os.getloadavg())
     emit(result, args.out)
 

@@ -53,6 +53,26 @@ def resolve_devices(devices: int | Sequence[jax.Device] | None = None) -> tuple[
     return chosen
 
 
+GSPMD_REASON = ("JAX 0.11's Shardy partitioner crashed (SIGSEGV) compiling the MJX drop tests and "
+                "the batched worlds for two H200s; GSPMD compiles and runs them")
+
+
+def use_gspmd_on_gpus(devices: Sequence[jax.Device]) -> bool:
+    """Switch JAX to the GSPMD partitioner before a program spans several GPUs (``GSPMD_REASON``);
+    True when it switched. One device, or CPU devices, keep the default. ``JAX_USE_SHARDY_PARTITIONER``
+    set in the environment is the user's choice and is kept."""
+    import os
+    import warnings
+
+    gpus = [d for d in devices if d.platform == "gpu"]
+    if len(gpus) < 2 or not jax.config.jax_use_shardy_partitioner or "JAX_USE_SHARDY_PARTITIONER" in os.environ:
+        return False
+    jax.config.update("jax_use_shardy_partitioner", False)
+    warnings.warn(f"phirie_jax: batches over {len(gpus)} GPUs compile with GSPMD ({GSPMD_REASON}); "
+                  "set JAX_USE_SHARDY_PARTITIONER=1 to keep Shardy", RuntimeWarning, stacklevel=3)
+    return True
+
+
 @dataclasses.dataclass(frozen=True)
 class BatchMesh:
     """A 1-D mesh of devices carrying a batch axis (module docstring). Hashable: a static
@@ -62,8 +82,10 @@ class BatchMesh:
 
     @classmethod
     def over(cls, devices: int | Sequence[jax.Device] | None = None) -> BatchMesh:
-        """The mesh over ``resolve_devices(devices)``."""
-        return cls(Mesh(np.array(resolve_devices(devices), dtype=object), (AXIS,)))
+        """The mesh over ``resolve_devices(devices)`` (``use_gspmd_on_gpus`` for several GPUs)."""
+        chosen = resolve_devices(devices)
+        use_gspmd_on_gpus(chosen)
+        return cls(Mesh(np.array(chosen, dtype=object), (AXIS,)))
 
     @property
     def devices(self) -> tuple[jax.Device, ...]:

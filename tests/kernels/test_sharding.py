@@ -71,3 +71,27 @@ def test_map_rows_on_a_mesh_of_one_is_lax_map_and_a_new_mesh_reuses_the_program(
     program(jnp.float32(0.3), xs, BatchMesh.over(1))          # an equal mesh: the same program
     assert len(traces) == count
     assert BatchMesh.over(1) == BatchMesh.over([jax.devices()[0]])
+
+
+class _FakeGpu:
+    platform = "gpu"
+
+
+def test_several_gpus_compile_with_gspmd_and_cpus_keep_the_default(monkeypatch):
+    from kernels.sharding import use_gspmd_on_gpus
+
+    before = jax.config.jax_use_shardy_partitioner
+    monkeypatch.delenv("JAX_USE_SHARDY_PARTITIONER", raising=False)
+    try:
+        jax.config.update("jax_use_shardy_partitioner", True)
+        assert use_gspmd_on_gpus(jax.devices()) is False           # CPU devices: the default stays
+        assert use_gspmd_on_gpus([_FakeGpu()]) is False            # one GPU: nothing is partitioned
+        assert jax.config.jax_use_shardy_partitioner
+        monkeypatch.setenv("JAX_USE_SHARDY_PARTITIONER", "1")      # the user's choice is kept
+        assert use_gspmd_on_gpus([_FakeGpu(), _FakeGpu()]) is False
+        monkeypatch.delenv("JAX_USE_SHARDY_PARTITIONER")
+        with pytest.warns(RuntimeWarning, match="GSPMD"):
+            assert use_gspmd_on_gpus([_FakeGpu(), _FakeGpu()]) is True
+        assert not jax.config.jax_use_shardy_partitioner
+    finally:
+        jax.config.update("jax_use_shardy_partitioner", before)
