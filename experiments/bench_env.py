@@ -63,6 +63,9 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb,
                                    repeats)
     out = batch.render(cameras, max_images=max_images)
+    # the policy's layout: uint8 NHWC made inside the rendering program, left on the device
+    pixels_first, pixels_s = timed(lambda: batch.render(cameras, max_images=max_images, pixels="uint8"),
+                                   repeats)
     # world 0's body poses in the single environment (as MJX computed them: after a step
     # they are those of the step's start, in both simulators): the same image
     env.data.xpos[:] = np.asarray(batch.data.xpos[0])
@@ -89,6 +92,7 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
         "step_compile_s": round(step_first - step_s, 2), "render_compile_s": round(render_first - render_s, 2),
         "world_steps_per_s": round(worlds * steps / step_s, 1),
         "frames_per_s": round(frames / render_s, 2),
+        "uint8_frames_per_s": round(frames / pixels_s, 2), "uint8_render_compile_s": round(pixels_first - pixels_s, 2),
         "loop_world_steps_per_s": round(worlds * steps / loop_step_s, 1),
         "loop_frames_per_s": round(frames / loop_render_s, 2),
         "speedup_steps_vs_loop": round(loop_step_s / step_s, 2),

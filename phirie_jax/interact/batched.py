@@ -50,6 +50,17 @@ from phirie_jax.render import (
 from phirie_jax.types import Camera
 
 MAX_IMAGES = 256  # images per rasterization call and device: bounds the merged lists' memory
+PIXEL_TYPES = {"uint8": jnp.uint8, "bfloat16": jnp.bfloat16, "float32": jnp.float32}
+
+
+def as_pixels(rgb: jax.Array, pixels: str) -> jax.Array:
+    """rgb (..., H, W, 3) in [0, 1] as a policy takes it (``PIXEL_TYPES``): uint8 0–255 (clipped,
+    rounded to nearest), bfloat16 or float32 (as rendered)."""
+    if pixels not in PIXEL_TYPES:
+        raise ValueError(f"pixels: {pixels!r} (expected one of {', '.join(PIXEL_TYPES)})")
+    if pixels == "uint8":
+        return jnp.round(jnp.clip(rgb, 0.0, 1.0) * 255.0).astype(jnp.uint8)
+    return rgb.astype(PIXEL_TYPES[pixels])
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "mesh"))
@@ -218,11 +229,12 @@ class BatchedEnvironment:
         return compose(self.env.background, self.env.object_gaussians, self.env.body_index, placements)
 
     def render(self, cameras: list[Camera | int], background=(0.0, 0.0, 0.0),
-               max_images: int = MAX_IMAGES) -> RasterOutput:
-        """Worlds × cameras; outputs with leading (N, C) axes (``WorldRenderer.render``)."""
+               max_images: int = MAX_IMAGES, pixels: str | None = None) -> RasterOutput | jax.Array:
+        """Worlds × cameras; outputs with leading (N, C) axes, or with ``pixels`` the colour
+        alone in that type (``WorldRenderer.render``)."""
         if self._renderer is None:
             self._renderer = WorldRenderer(self.env, devices=self.mesh.devices)
-        return self._renderer.render(self.placements(), cameras, background, max_images)
+        return self._renderer.render(self.placements(), cameras, background, max_images, pixels)
 
 
 def _source_spec(env: Environment):
@@ -242,20 +254,24 @@ def _static_views(background: Gaussians, Ks, world_to_cameras, *, width: int, he
                                              config=config))(Ks, world_to_cameras)
 
 
-@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity", "mesh"))
+@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity", "mesh", "pixels"))
 def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks, world_to_cameras,
                    background, *, width: int, height: int, config: RasterConfig,
-                   moving_capacity: int, mesh: BatchMesh) -> RasterOutput:
+                   moving_capacity: int, mesh: BatchMesh, pixels: str | None = None
+                   ) -> RasterOutput | tuple[jax.Array, jax.Array]:
     """Images (W, C) of W worlds: attached Gaussians (Nm) with body (Nm,) int32, placements
     (W, K, 4, 4) canonical → world per body (W a multiple of the mesh's devices, each rendering
-    its own worlds), views of C cameras (Ks (C, 3, 3), world_to_cameras (C, 4, 4)), background (3,)."""
+    its own worlds), views of C cameras (Ks (C, 3, 3), world_to_cameras (C, 4, 4)), background (3,).
+    A ``RasterOutput``; with ``pixels`` (``as_pixels``) only the colour in that type, (W, C, H, W, 3),
+    and the intersection counts (W, C): nothing else is kept in device memory."""
 
     def worlds(views, attached, body, placements, Ks, world_to_cameras, background):
         def one_world(placement):
             moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
-            return jax.vmap(lambda view, K, W: rasterize_over_static(
+            out = jax.vmap(lambda view, K, W: rasterize_over_static(
                 view, moved, K, W, width=width, height=height, moving_capacity=moving_capacity,
                 background=background, config=config))(views, Ks, world_to_cameras)
+            return out if pixels is None else (as_pixels(out.rgb, pixels), out.num_intersections)
 
         return jax.vmap(one_world)(placements)
 
@@ -315,10 +331,16 @@ class WorldRenderer:
         return views, config, Ks, w2cs, width, height
 
     def render(self, placements, cameras: list[Camera | int], background=(0.0, 0.0, 0.0),
-               max_images: int = MAX_IMAGES) -> RasterOutput:
+               max_images: int = MAX_IMAGES, pixels: str | None = None) -> RasterOutput | jax.Array:
         """placements (N, K, 4, 4) canonical → world of every body in N worlds; outputs with
         leading (N, C) axes. Each device renders ``max_images // C`` worlds a call (the last
-        call padded to the same size, so one compiled program serves every call)."""
+        call padded to the same size, so one compiled program serves every call).
+
+        ``pixels`` ("uint8", "bfloat16" or "float32"): only the colour, (N, C, H, W, 3) in that
+        type, made inside the rendering program and left on the device(s) (a policy's input);
+        None: the whole ``RasterOutput``."""
+        if pixels is not None and pixels not in PIXEL_TYPES:
+            raise ValueError(f"pixels: {pixels!r} (expected one of {', '.join(PIXEL_TYPES)}, or None)")
         cams = [self.env.camera(c) for c in cameras]
         views, config, Ks, w2cs, width, height = self.views(cams)
         placements = jnp.asarray(placements, jnp.float32)
@@ -334,13 +356,14 @@ class WorldRenderer:
             while True:
                 out = _render_worlds(views, self.attached, self.body, chunk, Ks, w2cs,
                                      bg, width=width, height=height, config=config,
-                                     moving_capacity=self.moving_capacity, mesh=self.mesh)
-                moving_needed = int(jnp.max(out.num_intersections - views.needed[None, :]))
+                                     moving_capacity=self.moving_capacity, mesh=self.mesh, pixels=pixels)
+                counts = out.num_intersections if pixels is None else out[1]
+                moving_needed = int(jnp.max(counts - views.needed[None, :]))
                 if moving_needed <= self.moving_capacity:
                     break
                 self.retries += 1
                 self.moving_capacity = max(2 * self.moving_capacity,
                                            next_power_of_two(moving_needed))
             keep = min(per, n - start)
-            chunks.append(jax.tree.map(lambda x, keep=keep: x[:keep], out))
+            chunks.append(jax.tree.map(lambda x, keep=keep: x[:keep], out if pixels is None else out[0]))
         return jax.tree.map(lambda *x: jnp.concatenate(x), *chunks) if len(chunks) > 1 else chunks[0]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.interact.batched import WorldRenderer
+from phirie_jax.interact.batched import WorldRenderer, as_pixels
 from tests.interact.test_environment import toy_env
 
 IMAGE_TOL = 1e-5  # the same float32 arithmetic, compiled into different programs
@@ -38,3 +38,25 @@ def test_each_world_renders_as_the_single_environment(tmp_path):
     # the worlds differ, and the objects are in view
     assert float(np.abs(out.rgb[0, 0] - out.rgb[1, 0]).max()) > 0.1
     assert float(np.mean(out.alpha)) > 0.05
+
+
+def test_policy_pixels_are_the_render_in_the_policys_type(tmp_path):
+    import jax.numpy as jnp
+    import pytest
+
+    env = toy_env(tmp_path, view_dependence=0.3)
+    renderer = WorldRenderer(env)
+    placements = np.stack([env.placements()] * 2)
+    full = renderer.render(placements, [0, 1], max_images=4)
+    as_uint8 = renderer.render(placements, [0, 1], max_images=4, pixels="uint8")
+    assert as_uint8.shape == full.rgb.shape == (2, 2, 48, 64, 3) and as_uint8.dtype == jnp.uint8
+    expected = np.round(np.clip(np.asarray(full.rgb), 0.0, 1.0) * 255.0)
+    # the same render compiled into another program: a value on a rounding edge may move by one
+    assert np.abs(np.asarray(as_uint8, np.int32) - expected).max() <= 1
+    assert np.mean(np.asarray(as_uint8) == expected) > 0.99
+    as_bf16 = as_pixels(full.rgb, "bfloat16")          # the same conversion the program applies
+    assert as_bf16.dtype == jnp.bfloat16
+    np.testing.assert_allclose(np.asarray(as_bf16, np.float32), full.rgb, atol=2 ** -8 + IMAGE_TOL)
+    assert len(as_uint8.devices()) >= 1                              # a device array, not a host copy
+    with pytest.raises(ValueError, match="pixels: 'int8'"):
+        renderer.render(placements, [0], pixels="int8")
