@@ -45,12 +45,22 @@ def matrix_to_quat(matrix) -> np.ndarray:
 
 
 def quat_multiply(a, b) -> np.ndarray:
-    """Hamilton product a ⊗ b of (..., 4) wxyz quaternions (broadcast): the rotation b, then a.
-    Not normalized, so it also composes unnormalized Gaussian quaternions as they are stored."""
+    """Hamilton product a ⊗ b of any (..., 4) wxyz quaternions (broadcast), bilinear and not
+    normalized: it turns a Gaussian's stored quaternion, whatever its norm, by a rotation a. For
+    rotations, ``compose``."""
     w0, x0, y0, z0 = np.moveaxis(_batched(a, (4,), "quaternion a"), -1, 0)
     w, x, y, z = np.moveaxis(_batched(b, (4,), "quaternion b"), -1, 0)
     return np.stack([w0 * w - x0 * x - y0 * y - z0 * z, w0 * x + x0 * w + y0 * z - z0 * y,
                      w0 * y - x0 * z + y0 * w + z0 * x, w0 * z + x0 * y - y0 * x + z0 * w], axis=-1)
+
+
+def compose(a, b) -> np.ndarray:
+    """(..., 4) unit wxyz of the rotation b, then a, of unit (..., 4) wxyz quaternions (broadcast)."""
+    a, b = np.broadcast_arrays(_batched(a, (4,), "quaternion a"), _batched(b, (4,), "quaternion b"))
+    lead = a.shape[:-1]
+    product = (Rotation(a.reshape(-1, 4), normalize=False, scalar_first=True)
+               * Rotation(b.reshape(-1, 4), normalize=False, scalar_first=True))
+    return product.as_quat(scalar_first=True).reshape(lead + (4,))
 
 
 def yaw_quat(angle) -> np.ndarray:

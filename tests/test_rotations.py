@@ -85,6 +85,20 @@ def test_multiply_composes_matrices(quats):
     np.testing.assert_allclose(np.linalg.norm(rot.quat_multiply(2 * a, 3 * b), axis=1), 6.0, atol=1e-12)
 
 
+def test_compose_is_the_product_of_rotations(quats):
+    a, b = quats[:32], quats[32:]
+    ab = rot.compose(a, b)
+    np.testing.assert_allclose(ab, rot.quat_multiply(a, b), atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(ab, axis=1), 1.0, atol=TOL)
+    np.testing.assert_allclose(rot.quat_to_matrix(ab), rot.quat_to_matrix(a) @ rot.quat_to_matrix(b), atol=TOL)
+    assert rot.compose(a[0], b).shape == (32, 4)
+    # composing with a yaw turns about the composed frame's z: the matrix product, exactly as SciPy
+    turn = rot.yaw_quat(0.7)
+    np.testing.assert_array_equal(rot.compose(a[0], turn),
+                                  (Rotation.from_quat(a[0], scalar_first=True) * Rotation.from_euler("z", 0.7))
+                                  .as_quat(scalar_first=True))
+
+
 def test_rotvec_round_trip_and_angle(quats):
     rng = np.random.default_rng(1)
     vecs = rng.normal(size=(20, 3))

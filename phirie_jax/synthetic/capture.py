@@ -12,8 +12,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from phirie_jax.rotations import matrix_to_quat
 from phirie_jax.synthetic.shapes import ColourFn
 from phirie_jax.types import GaussianSplatData
 
@@ -89,7 +89,7 @@ def surface_gaussians(points, normals, colour: ColourFn, colour_points, spacing:
     """Flat disks on the sampled surface, coloured by ``colour(colour_points)`` (canonical frame)."""
     n = len(points)
     frames = tangent_frames(normals)
-    quats = np.roll(Rotation.from_matrix(frames).as_quat(), 1, axis=1)
+    quats = matrix_to_quat(frames)
     sigma = DISK_RADIUS * spacing * rng.uniform(0.8, 1.2, size=(n, 1))
     log_scales = np.log(np.concatenate([sigma, sigma, DISK_THICKNESS * sigma], axis=1))
     rgb = np.clip(colour(colour_points) + 0.02 * rng.normal(size=(n, 3)), 0, 1)

@@ -191,10 +191,10 @@ class FillRegion:
 
     def quats(self) -> np.ndarray:
         """(K, 4) wxyz rotation with columns (u, v, normal)."""
-        from scipy.spatial.transform import Rotation
+        from phirie_jax.rotations import matrix_to_quat
 
         frame = np.stack([self.u, self.v, self.plane.normal], axis=-1)
-        q = np.roll(Rotation.from_matrix(frame).as_quat(), 1)
+        q = matrix_to_quat(frame)
         return np.tile(q, (self.num, 1))
 
 

@@ -119,7 +119,7 @@ def reaching_into(data: GaussianSplatData, candidates: np.ndarray, caster: Rayca
                   depth: float) -> np.ndarray:
     """Indices among ``candidates`` (K,) whose longest axis, ``sigmas`` σ either side of the centre,
     ends more than ``depth`` inside the caster's closed mesh (R_reach; ``RemovalConfig.reach_sigmas``)."""
-    from scipy.spatial.transform import Rotation
+    from phirie_jax.rotations import quat_to_matrix
 
     if len(candidates) == 0:
         return np.zeros(0, np.int64)
@@ -127,7 +127,7 @@ def reaching_into(data: GaussianSplatData, candidates: np.ndarray, caster: Rayca
     longest = np.argmax(scales, axis=1)
     quats = data.quats[candidates].astype(np.float64)
     norms = np.linalg.norm(quats, axis=1, keepdims=True)
-    rot = Rotation.from_quat(quats / np.maximum(norms, 1e-12), scalar_first=True).as_matrix()
+    rot = quat_to_matrix(quats / np.maximum(norms, 1e-12))
     axis = rot[np.arange(len(candidates)), :, longest] * (sigmas * scales[np.arange(len(candidates)), longest])[:, None]
     centres = data.means[candidates].astype(np.float64)
     ends = caster.deep_inside(np.concatenate([centres + axis, centres - axis]), depth).reshape(2, -1)

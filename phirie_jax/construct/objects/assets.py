@@ -63,18 +63,13 @@ def transform_splats(data: GaussianSplatData, matrix: np.ndarray) -> GaussianSpl
     SH rotated exactly (``kernels.sh.rotate_sh``). NumPy on the host: sizes vary per object, so a
     jitted version would compile once per object (``kernels.gaussians.transform_gaussians`` is the
     same map in JAX; the tests check they agree)."""
-    from scipy.spatial.transform import Rotation
-
     from kernels.sh import rotate_sh
+    from phirie_jax.rotations import matrix_to_quat, quat_multiply
 
     block = np.asarray(matrix, np.float64)[:3, :3]
     scale = float(np.cbrt(np.linalg.det(block)))
     rot = block / scale
-    q_r = Rotation.from_matrix(rot).as_quat()            # xyzw
-    w0, x0, y0, z0 = q_r[3], q_r[0], q_r[1], q_r[2]
-    w, x, y, z = data.quats.astype(np.float64).T
-    quats = np.stack([w0 * w - x0 * x - y0 * y - z0 * z, w0 * x + x0 * w + y0 * z - z0 * y,
-                      w0 * y - x0 * z + y0 * w + z0 * x, w0 * z + x0 * y - y0 * x + z0 * w], axis=1)
+    quats = quat_multiply(matrix_to_quat(rot), data.quats.astype(np.float64))
     return GaussianSplatData(
         means=(scale * data.means.astype(np.float64) @ rot.T + np.asarray(matrix)[:3, 3]).astype(np.float32),
         quats=quats.astype(np.float32), log_scales=(data.log_scales + np.log(scale)).astype(np.float32),
@@ -84,13 +79,13 @@ def transform_splats(data: GaussianSplatData, matrix: np.ndarray) -> GaussianSpl
 
 def _tangent_quats(normals: np.ndarray) -> np.ndarray:
     """(P, 4) wxyz rotations whose third column is the unit normal."""
-    from scipy.spatial.transform import Rotation
+    from phirie_jax.rotations import matrix_to_quat
 
     helper = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     t1 = np.cross(normals, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     frames = np.stack([t1, np.cross(normals, t1), normals], axis=-1)
-    return np.roll(Rotation.from_matrix(frames).as_quat(), 1, axis=1)
+    return matrix_to_quat(frames)
 
 
 def captured_gaussians(scene_gaussians: GaussianSplatData, q_world: np.ndarray, placed_mesh,

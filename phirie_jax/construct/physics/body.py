@@ -20,11 +20,11 @@ from collections.abc import Sequence
 
 import mujoco
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from phirie_jax.construct.physics.collision import ConvexPart, ghost_part
 from phirie_jax.construct.physics.priors import MassProperties, Priors, mass_properties
 from phirie_jax.geometry import split_sim3
+from phirie_jax.rotations import matrix_to_quat
 
 TORSIONAL_FRICTION, ROLLING_FRICTION = 0.005, 0.0001   # MuJoCo's defaults
 BODY_PREFIX = "object_"   # every object body's name starts with this (``body_name``)
@@ -94,7 +94,7 @@ def add_body(spec: mujoco.MjSpec, body: ObjectBody, name: str | None = None, pla
     kwargs = {}
     if placed:
         _, rot, trans = split_sim3(body.pose)
-        kwargs = {"pos": trans, "quat": Rotation.from_matrix(rot).as_quat(scalar_first=True)}
+        kwargs = {"pos": trans, "quat": matrix_to_quat(rot)}
     b = spec.worldbody.add_body(name=name, **kwargs)
     b.add_freejoint(name=name)
     b.explicitinertial = True

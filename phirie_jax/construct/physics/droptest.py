@@ -24,16 +24,15 @@ from collections.abc import Sequence
 
 import mujoco
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from kernels.sharding import resolve_devices
 from phirie_jax.construct.physics.body import ObjectBody, add_body, object_body
 from phirie_jax.construct.physics.collision import ConvexPart, MeshError, hull_part
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
+from phirie_jax.construct.physics.ground import add_drop_plane, set_drop_options
 from phirie_jax.construct.physics.priors import MassProperties, Priors, mass_properties, priors
 from phirie_jax.geometry import rotation_to_z, split_sim3
-
-PLANE_HALF_SIZE = 5.0     # m; the plane is infinite for collisions, this is only its drawn size
+from phirie_jax.rotations import matrix_to_quat, quat_angle, quat_to_matrix
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +66,11 @@ class DropResult:
     backend: str
     error: str | None = None
 
+    @classmethod
+    def not_run(cls, backend: str, error: str) -> DropResult:
+        """The result of a body that could not be tested: no verdict, no measurements, ``error`` says why."""
+        return cls(None, None, None, None, None, backend, error)
+
     def record(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -93,29 +97,16 @@ def build_model(body: DropBody, bucket: int, config: DropTestConfig) -> mujoco.M
     """The compiled drop-test model of ``body``: plane + one free body with ``bucket`` mesh parts."""
     spec = mujoco.MjSpec()
     spec.modelname = "phirie_droptest"
-    _set_options(spec.option, config)
-    # the body's priors govern its contact with the plane: MuJoCo takes the larger friction of a
-    # pair (the plane has none) and mixes solref/solimp by solmix (the plane's is 0)
-    spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
-                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
+    set_drop_options(spec.option, config)
+    add_drop_plane(spec)
     add_body(spec, body.body, name="body", placed=False, inline=True, pad_to=bucket)
     return spec.compile()
-
-
-def _set_options(opt, config: DropTestConfig) -> None:
-    """The drop test's step and solver settings on a spec's ``option``."""
-    opt.timestep = config.timestep
-    opt.iterations = config.solver_iterations
-    opt.ls_iterations = config.line_search_iterations
-    opt.tolerance = config.tolerance
-    opt.solver = mujoco.mjtSolver.mjSOL_CG if config.solver == "cg" else mujoco.mjtSolver.mjSOL_NEWTON
-    opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE if config.jacobian == "sparse" else mujoco.mjtJacobian.mjJAC_DENSE
 
 
 def spawn_qpos(body: DropBody) -> np.ndarray:
     """(7,) free-joint qpos: spawn orientation, lowest point of the parts exactly on the plane."""
     lowest = min(float((p.vertices @ body.rotation.T)[:, 2].min()) for p in body.parts)
-    quat = Rotation.from_matrix(body.rotation).as_quat(scalar_first=True)
+    quat = matrix_to_quat(body.rotation)
     return np.concatenate([[0.0, 0.0, -lowest], quat])
 
 
@@ -150,14 +141,12 @@ def _com(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     quat = np.asarray(qpos[3:7], np.float64)
     if not (np.isfinite(qpos).all() and np.linalg.norm(quat) > 1e-9):
         return np.full(3, np.nan)
-    rot = Rotation.from_quat(quat / np.linalg.norm(quat), scalar_first=True).as_matrix()
+    rot = quat_to_matrix(quat / np.linalg.norm(quat))
     return qpos[:3] + rot @ model.body_ipos[1]
 
 
 def _tilt_deg(q0: np.ndarray, q1: np.ndarray) -> float:
-    r0 = Rotation.from_quat(q0 / np.linalg.norm(q0), scalar_first=True)
-    r1 = Rotation.from_quat(q1 / np.linalg.norm(q1), scalar_first=True)
-    return float(np.degrees((r1 * r0.inv()).magnitude()))
+    return float(np.degrees(quat_angle(q0 / np.linalg.norm(q0), q1 / np.linalg.norm(q1))))
 
 
 def verdict(model: mujoco.MjModel, qpos0, settled, final, config: DropTestConfig, backend: str) -> DropResult:
@@ -206,7 +195,7 @@ def drop_test(bodies: Sequence[DropBody], config: DropTestConfig = DropTestConfi
             models[k], qpos0[k] = build_model(body, bucket, config), spawn_qpos(body)
             groups.setdefault(bucket, []).append(k)
         except (ValueError, MeshError) as err:
-            results[k] = DropResult(None, None, None, None, None, backend, f"{type(err).__name__}: {err}")
+            results[k] = DropResult.not_run(backend, f"{type(err).__name__}: {err}")
     for bucket, members in groups.items():
         if backend == "warp":
             from phirie_jax.construct.physics import warp_batch
@@ -255,7 +244,7 @@ def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Seq
             bodies.append(body_from_parts((part,), pose, up, priors(cat, config)))
             index.append(k)
         except (ValueError, MeshError) as err:
-            results[k] = DropResult(None, None, None, None, None, backend, f"{type(err).__name__}: {err}")
+            results[k] = DropResult.not_run(backend, f"{type(err).__name__}: {err}")
     for k, result in zip(index, drop_test(bodies, config.drop_test, backend, devices)):
         results[k] = result
     return results  # type: ignore[return-value]

@@ -16,16 +16,16 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from phirie_jax.construct.physics.ground import PLANE_SIZE
 from phirie_jax.geometry import rotation_to_z
+from phirie_jax.rotations import compose, matrix_to_quat, yaw_quat
 
 HEIGHT_MERGE = 0.01        # supports closer than this in height are one support, m
 UP_FACING_DEG = 20.0       # surface triangles within this of up may be support
 BAND = 0.01                # ... and within this of the support height, m
 CELL = 0.02                # footprint grid cell, m
 FALLBACK_MARGIN = 0.1      # footprint box grown by this without surface evidence, m
-PLANE_DRAW_HALF = 5.0      # drawn half extent of the plane (it is infinite for collisions)
 FLOOR_MIN_AREA = 0.1       # m² of up-facing surface within one 1 cm height bin to be a floor
 
 
@@ -149,10 +149,10 @@ def fit_background(bodies: list[PlacedBody], up, surface=None, thickness: float 
                    mode: str = "supports") -> list[BackgroundGeom]:
     """Support geoms (scene frame) under ``bodies``; ``surface`` is a trimesh of the scene or None."""
     rot = rotation_to_z(up)                      # scene → gravity
-    to_scene = Rotation.from_matrix(rot.T)
+    to_scene = matrix_to_quat(rot.T)             # gravity → scene, wxyz
     if not bodies:
-        return [BackgroundGeom("floor", "plane", np.zeros(3), to_scene.as_quat(scalar_first=True),
-                               np.array([PLANE_DRAW_HALF, PLANE_DRAW_HALF, 0.05]), "no objects: plane at 0")]
+        return [BackgroundGeom("floor", "plane", np.zeros(3), to_scene,
+                               np.array(PLANE_SIZE), "no objects: plane at 0")]
     grav = [b.points @ rot.T for b in bodies]
     heights = [b.support if b.support is not None else float(g[:, 2].min()) for b, g in zip(bodies, grav)]
     groups = _groups(heights)
@@ -164,8 +164,8 @@ def fit_background(bodies: list[PlacedBody], up, surface=None, thickness: float 
         source = "lowest support (objects " + ", ".join(str(bodies[i].id) for i in groups[0]) + ")"
         groups = groups[1:]
     geoms = [BackgroundGeom("floor", "plane", rot.T @ np.array([0.0, 0.0, floor]),
-                            to_scene.as_quat(scalar_first=True),
-                            np.array([PLANE_DRAW_HALF, PLANE_DRAW_HALF, 0.05]), source)]
+                            to_scene,
+                            np.array(PLANE_SIZE), source)]
     if mode == "plane":
         return geoms
     for k, group in enumerate(groups):
@@ -180,7 +180,7 @@ def fit_background(bodies: list[PlacedBody], up, surface=None, thickness: float 
         centre, angle, half = _min_area_rectangle(xy)
         half = half + margin
         pos_g = np.array([centre[0], centre[1], height - 0.5 * thickness])
-        quat = (to_scene * Rotation.from_euler("z", angle)).as_quat(scalar_first=True)
+        quat = compose(to_scene, yaw_quat(angle))
         ids = ", ".join(str(bodies[i].id) for i in group)
         geoms.append(BackgroundGeom(f"support_{k}", "box", rot.T @ pos_g, quat,
                                     np.array([half[0], half[1], 0.5 * thickness]), f"{source} (objects {ids})"))

@@ -27,7 +27,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from phirie_jax import layout
 from phirie_jax.construct.physics.body import ObjectBody, body_name
@@ -36,6 +35,7 @@ from phirie_jax.construct.physics.priors import Priors
 from phirie_jax.construct.physics.supports import BackgroundGeom
 from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
+from phirie_jax.rotations import matrix_to_quat, quat_to_matrix
 
 WORLD = "/World"
 MISSING_PXR = "pxr is not importable (install the usd extra: pip install 'phirie_jax[usd]', i.e. usd-core)"
@@ -53,7 +53,7 @@ def _quat(rotation: np.ndarray):
     """(3, 3) rotation → Gf.Quatd (w, x, y, z)."""
     from pxr import Gf
 
-    w, x, y, z = Rotation.from_matrix(rotation).as_quat(scalar_first=True)
+    w, x, y, z = matrix_to_quat(rotation)
     return Gf.Quatd(float(w), float(x), float(y), float(z))
 
 
@@ -140,7 +140,7 @@ def _support(stage, geom: BackgroundGeom, material) -> None:
     from pxr import UsdGeom
 
     path = f"{WORLD}/supports/{geom.name}"
-    rotation = Rotation.from_quat(np.asarray(geom.quat, np.float64), scalar_first=True).as_matrix()
+    rotation = quat_to_matrix(geom.quat)
     if geom.type == "box":
         shape = UsdGeom.Cube.Define(stage, path)
         shape.CreateSizeAttr(2.0)

@@ -38,6 +38,8 @@ import numpy as np
 
 from kernels.sharding import split
 from phirie_jax.construct.physics.config import DropTestConfig
+from phirie_jax.construct.physics.ground import add_drop_plane, set_drop_options
+from phirie_jax.rotations import quat_to_matrix
 
 # Per-world model fields: what differs between candidates of one bucket (``mjx_batch.BATCHED``
 # without the fields MuJoCo Warp does not have).
@@ -97,17 +99,14 @@ def bank_model(models: list[mujoco.MjModel], config: DropTestConfig, sleep: bool
     """The bank model holding every candidate's parts, and (N, P) the mesh id of candidate n's
     part p in it. models: each candidate's drop-test model (``droptest.build_model``, one bucket);
     sleep: compiled with sleeping allowed (the early exit)."""
-    from phirie_jax.construct.physics.droptest import PLANE_HALF_SIZE, _set_options
-
     parts = models[0].ngeom - 1
     spec = mujoco.MjSpec()
     spec.modelname = "phirie_droptest_bank"
-    _set_options(spec.option, config)
+    set_drop_options(spec.option, config)
     if sleep:
         spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
         spec.option.sleep_tolerance = SLEEP_TOLERANCE
-    spec.worldbody.add_geom(name="plane", type=mujoco.mjtGeom.mjGEOM_PLANE,
-                            size=[PLANE_HALF_SIZE, PLANE_HALF_SIZE, 0.1], friction=[0.0, 0.0, 0.0], solmix=0.0)
+    add_drop_plane(spec)
     ids = np.zeros((len(models), parts), np.int64)
     for n, m in enumerate(models):
         if m.ngeom - 1 != parts:
@@ -116,9 +115,7 @@ def bank_model(models: list[mujoco.MjModel], config: DropTestConfig, sleep: bool
             mesh = int(m.geom_dataid[1 + p])
             start, count = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
             # the compiled mesh, in its own frame, put back where the candidate's geom holds it
-            rot = np.zeros(9)
-            mujoco.mju_quat2Mat(rot, m.geom_quat[1 + p])
-            verts = m.mesh_vert[start:start + count] @ rot.reshape(3, 3).T + m.geom_pos[1 + p]
+            verts = m.mesh_vert[start:start + count] @ quat_to_matrix(m.geom_quat[1 + p]).T + m.geom_pos[1 + p]
             spec.add_mesh(name=f"c{n}_p{p}").uservert = verts.ravel()
             ids[n, p] = n * parts + p
     ref = models[0]
