@@ -37,10 +37,10 @@ PROFILES = ("fixed", "adaptive")
 
 
 def profile_config(name: str):
-    from phirie_jax.construct.physics.config import AdaptiveCoacd, DropTestConfig, PhysicsConfig
+    from phirie_jax.construct.physics.config import AdaptiveCoacd, CoacdConfig, DropTestConfig, PhysicsConfig
 
     adaptive = AdaptiveCoacd() if name == "adaptive" else AdaptiveCoacd(enabled=False)
-    return PhysicsConfig(coacd_adaptive=adaptive, drop_test=DropTestConfig(backend="mujoco"))
+    return PhysicsConfig(coacd=CoacdConfig(adaptive=adaptive), drop_test=DropTestConfig(backend="mujoco"))
 
 
 def _start(threads: int) -> None:
@@ -50,7 +50,7 @@ def _start(threads: int) -> None:
 def build(item: dict, profile: str) -> dict:
     """(In a worker.) One object's collision with one profile, its parts written and read back as
     the physics stage does, and their drop test (MuJoCo C)."""
-    from phirie_jax.construct.physics import droptest as dt
+    from phirie_jax.construct.physics import droptest
     from phirie_jax.construct.physics.body import object_body
     from phirie_jax.construct.physics.collision import collision_from_mesh
     from phirie_jax.construct.physics.parts import read_part, write_parts
@@ -69,7 +69,7 @@ def build(item: dict, profile: str) -> dict:
         parts = [read_part(Path(tmp) / p) for p in paths]
     shape = Shape.of_mesh(vertices, faces, split_sim3(pose)[0])
     body = object_body(1, parts, pose, priors(item["category"], config, shape, 1))
-    drop = dt.drop_test([dt.drop_body(body, item["up"])], config.drop_test)[0]
+    drop = droptest.drop_test([droptest.drop_body(body, item["up"])], config.drop_test)[0]
     return {"source": item["source"], "object": item["object"], "category": item["category"], "profile": profile,
             "triangles": r["repair"]["triangles"], **{k: r["coacd"][k] for k in ("tier", "solidity", "extent_m",
                                                                                   "threshold", "max_triangles")},
@@ -179,10 +179,10 @@ def main() -> None:
     fixed, adaptive = profile_config("fixed"), profile_config("adaptive")
     emit({"host": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
           "load_average_at_end": os.getloadavg(), "workers": args.workers, "omp_threads_per_worker": 1,
-          "config": {"threshold": fixed.coacd_threshold, "max_parts": fixed.max_parts,
-                     "max_hull_vertices": fixed.max_hull_vertices, "resolution": fixed.coacd_resolution,
-                     "fixed_mcts_iterations": fixed.coacd_mcts_iterations,
-                     "adaptive": dataclasses.asdict(adaptive.coacd_adaptive)},
+          "config": {"threshold": fixed.coacd.threshold, "max_parts": fixed.max_parts,
+                     "max_hull_vertices": fixed.max_hull_vertices, "resolution": fixed.coacd.resolution,
+                     "fixed_mcts_iterations": fixed.coacd.mcts_iterations,
+                     "adaptive": dataclasses.asdict(adaptive.coacd.adaptive)},
           "summary": summary(rows), "guard": guard(rows), "rows": rows}, args.out)
 
 

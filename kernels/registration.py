@@ -30,6 +30,7 @@ valid rows come first, in random order (its leading rows are the sweep subset).
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +39,8 @@ import numpy as np
 from kernels.chamfer import FAR, clipped_chamfer_support, nearest_point
 from kernels.pytree import pytree_dataclass
 from kernels.sharding import BatchMesh, map_rows
+
+Rotation = Literal["full", "yaw"]   # ICP's rotation: 3D Kabsch, or about +z only
 
 # Signed source-up axes; index 0 (+z) is the candidate's own up, tried first by default.
 UP_AXES = np.array([[0, 0, 1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1]], np.float64)
@@ -96,7 +99,7 @@ class SearchSpec:
     score_obs_points: int = 4096
     icp_iterations: int = 20
     scale_iterations: int = 10
-    rotation: str = "full"
+    rotation: Rotation = "full"
     chunk: int = 256
     hypothesis_batch: int = 36
     snap_to_support: bool = False

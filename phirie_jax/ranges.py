@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 import math
 import numbers
+import typing
 from collections.abc import Iterator
 from contextvars import ContextVar
 
@@ -92,7 +93,29 @@ class Positions:
         return "values " + ", ".join(str(r) for r in self.ranges)
 
 
-Spec = Range | Each | Positions
+@dataclasses.dataclass(frozen=True)
+class Choice:
+    """One of a field's named options: the values of its ``Literal`` type (``Choice.of(Backend)``)."""
+
+    options: tuple[str, ...]
+
+    @classmethod
+    def of(cls, literal) -> Choice:
+        """The options of a ``Literal[...]`` of strings (a field typed ``Alias | None``: None is unset
+        and passes, as for every spec)."""
+        options = typing.get_args(literal)
+        if typing.get_origin(literal) is not typing.Literal or not all(isinstance(o, str) for o in options):
+            raise TypeError(f"Choice.of: {literal!r} is not a Literal of strings")
+        return cls(options)
+
+    def __contains__(self, value) -> bool:
+        return isinstance(value, str) and value in self.options
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join(self.options)
+
+
+Spec = Range | Each | Positions | Choice
 
 POSITIVE = Range(0, low_open=True)
 NON_NEGATIVE = Range(0)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from phirie_jax.construct.physics.config import PhysicsConfig
+from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
 from phirie_jax.info import outcome_lines
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.scene import load_scene
@@ -60,7 +60,7 @@ def test_box_prompt_reads_back_and_holds_the_head():
 
 
 # CoACD's search shortened: the head's collision is not what these tests are about
-QUICK = ConvertConfig(physics=PhysicsConfig(coacd_resolution=500, coacd_mcts_iterations=20, coacd_mcts_nodes=5,
+QUICK = ConvertConfig(physics=PhysicsConfig(coacd=CoacdConfig(resolution=500, mcts_iterations=20, mcts_nodes=5),
                                             max_parts=4))
 
 

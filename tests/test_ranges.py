@@ -22,6 +22,7 @@ from phirie_jax.ranges import (
     AT_LEAST_ONE,
     FRACTION,
     POSITIVE,
+    Choice,
     Each,
     Positions,
     Range,
@@ -84,6 +85,62 @@ def test_every_numeric_field_refuses_a_value_outside_its_range(cls, field, value
     name = f"search.{field}" if cls is SearchSpec else field
     assert str(err.value).startswith(f"{owner}.{name} ") and ": expected " in str(err.value)
     assert "\n" not in str(err.value)
+
+
+def choice_fields(cls) -> typing.Iterator[tuple[type, str, tuple[str, ...]]]:
+    """(config class, field, its options) for every ``Literal`` field under ``cls``."""
+    hints = typing.get_type_hints(cls)
+    for field in dataclasses.fields(cls):
+        kinds = [t for t in typing.get_args(hints[field.name]) or (hints[field.name],) if t is not type(None)]
+        if typing.get_origin(hints[field.name]) is typing.Literal:
+            kinds = [hints[field.name]]
+        kind = kinds[0] if len(kinds) == 1 else None
+        if dataclasses.is_dataclass(kind):
+            yield from choice_fields(kind)
+        elif typing.get_origin(kind) is typing.Literal:
+            yield cls, field.name, typing.get_args(kind)
+
+
+CHOICES = [case for root in (ConvertConfig, RolloutConfig) for case in choice_fields(root)]
+
+
+def test_choices_read_as_written_and_refuse_what_is_not_one():
+    options = Choice.of(typing.Literal["auto", "on", "off"])
+    assert str(options) == "one of auto, on, off" and "on" in options
+    assert "maybe" not in options and None not in options and 1 not in options
+    with pytest.raises(TypeError, match="not a Literal of strings"):
+        Choice.of(str)
+
+
+def test_every_choice_field_is_walked():
+    assert {(cls.__name__, field) for cls, field, _ in CHOICES} >= {
+        ("CoacdConfig", "preprocess"), ("PhysicsConfig", "background"), ("DropTestConfig", "backend"),
+        ("DropTestConfig", "solver"), ("DropTestConfig", "jacobian"), ("ObserveConfig", "surface_source"),
+        ("SurfaceConfig", "backend"), ("ObjectsConfig", "selection"), ("SearchSpec", "rotation"),
+        ("TargetsConfig", "inpaint")}
+
+
+@pytest.mark.parametrize("cls, field, options", CHOICES, ids=[f"{c.__name__}.{f}" for c, f, _ in CHOICES])
+def test_every_choice_field_refuses_a_word_it_does_not_know(cls, field, options):
+    for option in options:  # each named option is accepted
+        assert getattr(make(cls, field, option), "search" if cls is SearchSpec else field) is not None
+    with pytest.raises(ConfigValueError) as err:
+        make(cls, field, "bogus")
+    owner = "RegistrationConfig" if cls is SearchSpec else cls.__name__
+    name = f"search.{field}" if cls is SearchSpec else field
+    assert str(err.value) == f"{owner}.{name} bogus: expected one of {', '.join(options)}"
+
+
+def test_the_command_line_shows_the_choices_and_refuses_others(capsys):
+    with pytest.raises(SystemExit):
+        main(["convert", "--help"])
+    shown = capsys.readouterr().out
+    assert "--config.physics.coacd.preprocess {auto,on,off}" in shown
+    assert "--config.physics.drop-test.backend {auto,mjx,warp,mujoco}" in shown
+    assert "--up {None,+x,-x,+y,-y,+z,-z}" in shown
+    with pytest.raises(SystemExit):
+        main(["convert", "scene", "--out", "out", "--config.physics.coacd.preprocess", "maybe"])
+    assert "maybe" in capsys.readouterr().err
 
 
 def test_the_paper_defaults_pass():

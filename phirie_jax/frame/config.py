@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -18,7 +19,8 @@ from phirie_jax.errors import OptionError, SceneInputError
 from phirie_jax.io.jsonfile import read_json_object
 
 SCENE_FRAME_FILE = "frame.json"
-AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+Axis = Literal["+x", "-x", "+y", "-y", "+z", "-z"]
+AXES: dict[Axis, tuple[int, int, int]] = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,7 +44,7 @@ class FrameConfig:
             DICT_APRILTAG_36h11 (default: the common families are all searched).
     """
 
-    up: str | None = None
+    up: Axis | None = None
     scale: float | None = None
     known_size: str | None = None
     known_distance: tuple[float, float, float, float, float, float, float] | None = None

@@ -20,18 +20,21 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import gymnasium
 import numpy as np
 from gymnasium import spaces
-from scipy.spatial.transform import Rotation
 
 from phirie_jax.interact.environment import Environment
 from phirie_jax.interact.robot import script
 from phirie_jax.interact.robot.config import RobotConfig
 from phirie_jax.interact.robot.placement import object_centres, scene_supports
+from phirie_jax.ranges import Choice, check_ranges
+from phirie_jax.rotations import rotvec_to_matrix, yaw_matrix
 from phirie_jax.types import Camera
 
+Action = Literal["joint", "ee_delta"]   # joint targets, or an end-effector step (``GymConfig``)
 PLACEMENT_TRIES = 200
 PLACEMENT_GAP = 0.01       # m between sampled footprints
 
@@ -56,7 +59,7 @@ class GymConfig:
     robot: RobotConfig = RobotConfig()
     object_id: int | None = None
     goal: tuple[float, float] | None = None
-    action: str = "joint"
+    action: Action = "joint"
     cameras: tuple[int | str, ...] = (0, "wrist")
     width: int = 64
     depth: bool = False
@@ -67,6 +70,9 @@ class GymConfig:
     ee_step: float = 0.02
     yaw_step: float = 0.1
 
+    def __post_init__(self):
+        check_ranges(self, {"action": Choice.of(Action)})
+
 
 class PickPlaceEnv(gymnasium.Env):
     """Move one object of a converted scene to a goal with the robot (module docstring)."""
@@ -74,8 +80,6 @@ class PickPlaceEnv(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
     def __init__(self, out_dir, config: GymConfig = GymConfig(), render_mode: str | None = "rgb_array"):
-        if config.action not in ("joint", "ee_delta"):
-            raise ValueError(f"GymConfig.action {config.action!r}: expected 'joint' or 'ee_delta'")
         self.config = config
         self.render_mode = render_mode
         self.env = Environment.load(out_dir, robot=config.robot)
@@ -176,7 +180,7 @@ class PickPlaceEnv(gymnasium.Env):
         robot = self.env.robot
         q = self.env.data.ctrl[robot.arm_actuators].copy()
         position, rotation = robot.kinematics.forward(q)
-        yaw = Rotation.from_rotvec([0.0, 0.0, self.config.yaw_step * delta[3]]).as_matrix()
+        yaw = rotvec_to_matrix([0.0, 0.0, self.config.yaw_step * delta[3]])
         result = robot.kinematics.solve(position + self.config.ee_step * delta[:3], yaw @ rotation, q0=q, iterations=10)
         return result.q
 
@@ -200,7 +204,7 @@ class PickPlaceEnv(gymnasium.Env):
                 xy, shift = centre[:2], np.zeros(2)
             placed.append((xy, radius))
             turn = np.eye(4)
-            turn[:3, :3] = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi)).as_matrix()
+            turn[:3, :3] = yaw_matrix(rng.uniform(-np.pi, np.pi))
             turn[:3, 3] = np.array([*centre[:2], 0.0]) - turn[:3, :3] @ np.array([*centre[:2], 0.0])
             turn[:2, 3] += shift
             current = np.eye(4)
@@ -215,7 +219,7 @@ class PickPlaceEnv(gymnasium.Env):
                 continue
             cam = self.env.camera(key)
             offset = np.eye(4)
-            offset[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * self.np_random.uniform(-1, 1, 3)).as_matrix()
+            offset[:3, :3] = rotvec_to_matrix(np.radians(degrees) * self.np_random.uniform(-1, 1, 3))
             offset[:3, 3] = metres * self.np_random.uniform(-1, 1, 3)
             self._scene_cameras[name] = dataclasses.replace(cam, world_to_camera=offset @ cam.world_to_camera)
 

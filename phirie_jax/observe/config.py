@@ -7,6 +7,7 @@ every other default is ours and the field says why. Lengths are metres, angles d
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from phirie_jax.observe.prompt_config import PromptConfig
 from phirie_jax.ranges import (
@@ -16,10 +17,14 @@ from phirie_jax.ranges import (
     NON_NEGATIVE,
     POSITIVE,
     POSITIVE_FRACTION,
+    Choice,
     Range,
     at_least,
     check_ranges,
 )
+
+SurfaceBackend = Literal["jax", "open3d"]
+SurfaceSource = Literal["auto", "mesh", "splats"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +94,7 @@ class SurfaceConfig:
     min_alpha: float = 0.6
     view_stride: int = 1
     depth_max: float = 4.0
-    backend: str = "open3d"
+    backend: SurfaceBackend = "open3d"
     block: int = 8
     frames_per_step: int = 4
     min_weight: float = 1.0
@@ -100,10 +105,8 @@ class SurfaceConfig:
     floaters: FloaterConfig = FloaterConfig()
 
     def __post_init__(self):
-        if self.backend not in ("jax", "open3d"):
-            raise ValueError(f"surface backend {self.backend!r} (expected 'jax' or 'open3d')")
         check_ranges(self, {
-            "voxel": POSITIVE, "truncation": at_least(self.voxel, "voxel"), "min_alpha": POSITIVE_FRACTION,
+            "backend": Choice.of(SurfaceBackend), "voxel": POSITIVE, "truncation": at_least(self.voxel, "voxel"), "min_alpha": POSITIVE_FRACTION,
             "view_stride": AT_LEAST_ONE, "depth_max": POSITIVE, "block": AT_LEAST_ONE, "frames_per_step": AT_LEAST_ONE,
             "min_weight": POSITIVE, "snap_radius": NON_NEGATIVE, "snap_neighbours": AT_LEAST_ONE,
             "snap_min_opacity": FRACTION, "memory_budget_gb": POSITIVE})
@@ -235,16 +238,14 @@ class ObserveConfig:
     silhouette_agreement: float = 0.75
     support_clearance: float | None = 0.005
     working_width: int = 640
-    surface_source: str = "auto"
+    surface_source: SurfaceSource = "auto"
     surface: SurfaceConfig = SurfaceConfig()
     auto: AutoMaskConfig = AutoMaskConfig()
     prompts: PromptConfig = PromptConfig()
 
     def __post_init__(self):
-        if self.surface_source not in ("auto", "mesh", "splats"):
-            raise ValueError(f"surface_source {self.surface_source!r} (expected 'auto', 'mesh' or 'splats')")
         check_ranges(self, {
-            "voxel": POSITIVE, "overlap": POSITIVE_FRACTION, "min_views": AT_LEAST_ONE, "pixel_stride": AT_LEAST_ONE,
+            "surface_source": Choice.of(SurfaceSource), "voxel": POSITIVE, "overlap": POSITIVE_FRACTION, "min_views": AT_LEAST_ONE, "pixel_stride": AT_LEAST_ONE,
             "mask_erosion_px": NON_NEGATIVE, "min_proposal_points": AT_LEAST_ONE, "points_voxel": POSITIVE,
             "max_points": AT_LEAST_ONE, "silhouette_agreement": FRACTION, "support_clearance": NON_NEGATIVE,
             "working_width": Range(0, bound="0 = the photos' size")})

@@ -88,3 +88,11 @@ def test_synth_marker_option_is_checked(tmp_path, capsys):
     assert "does not fit on the 1.2 × 0.8 m table top" in capsys.readouterr().err
     assert main(["synth", str(tmp_path / "s"), "--preset", "tiny", "--marker", "0.1", "--fitted"]) == 2
     assert "--marker: given with --fitted" in capsys.readouterr().err
+
+
+def test_the_up_choices_are_the_axes():
+    import typing
+
+    from phirie_jax.frame.config import AXES, Axis
+
+    assert typing.get_args(Axis) == tuple(AXES)

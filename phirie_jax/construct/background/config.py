@@ -17,6 +17,7 @@ every other default is ours and the field says why (the longer notes behind some
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from phirie_jax.ranges import (
     ANGLE_DEG,
@@ -26,10 +27,13 @@ from phirie_jax.ranges import (
     OPEN_FRACTION,
     POSITIVE,
     POSITIVE_FRACTION,
+    Choice,
     Each,
     Range,
     check_ranges,
 )
+
+Inpaint = Literal["exemplar", "telea", "ns"]
 
 TILE_PX = Range(16, bound="one 16-pixel tile")  # the smallest crop the tiled rasterizer renders
 
@@ -194,7 +198,7 @@ class TargetsConfig:
         write: write the targets (and masks) under ``background/targets/`` for inspection or editing.
     """
 
-    inpaint: str = "exemplar"
+    inpaint: Inpaint = "exemplar"
     inpaint_radius: int = 5
     region_weight: float = 0.02
     region_dilate_px: int = 2
@@ -205,10 +209,8 @@ class TargetsConfig:
     write: bool = True
 
     def __post_init__(self):
-        if self.inpaint not in ("exemplar", "telea", "ns"):
-            raise ValueError(f"background inpaint {self.inpaint!r} (expected 'exemplar', 'telea' or 'ns')")
         check_ranges(self, {
-            "inpaint_radius": AT_LEAST_ONE, "region_weight": POSITIVE_FRACTION, "region_dilate_px": NON_NEGATIVE,
+            "inpaint": Choice.of(Inpaint), "inpaint_radius": AT_LEAST_ONE, "region_weight": POSITIVE_FRACTION, "region_dilate_px": NON_NEGATIVE,
             "loss_ring_px": NON_NEGATIVE, "explained_alpha": FRACTION, "plane_depth_tolerance": NON_NEGATIVE})
 
 

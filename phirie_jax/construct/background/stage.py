@@ -38,7 +38,7 @@ from kernels.sh import SH_C0, rgb_to_sh_dc
 from phirie_jax import layout
 from phirie_jax.compile_count import CompileCount
 from phirie_jax.construct.background import plane as fill_mod
-from phirie_jax.construct.background import targets as inpaint
+from phirie_jax.construct.background import targets
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.refine import DiskSet, refine
 from phirie_jax.construct.background.removal import ObjectInput, load_object, removal_sets
@@ -248,7 +248,7 @@ def _disk_set(fills: list[_ObjectFill]) -> DiskSet:
                    np.concatenate([np.full(f.region.num, f.id) for f in fills]))
 
 
-def _target_colours(disks: GaussianSplatData, owner: np.ndarray, frames: list[inpaint.Frame]) -> np.ndarray:
+def _target_colours(disks: GaussianSplatData, owner: np.ndarray, frames: list[targets.Frame]) -> np.ndarray:
     """(N, 3) colour of each disk's pixel in the first frame that sees it (its own object's frames
     first), NaN where none does. owner: (N,) object id of each disk."""
     out = np.full((disks.num, 3), np.nan)
@@ -266,7 +266,7 @@ def _target_colours(disks: GaussianSplatData, owner: np.ndarray, frames: list[in
     return out
 
 
-def _colour_from_targets(run: _Run, disk_set: DiskSet, frames: list[inpaint.Frame], fills: list[_ObjectFill]
+def _colour_from_targets(run: _Run, disk_set: DiskSet, frames: list[targets.Frame], fills: list[_ObjectFill]
                          ) -> DiskSet:
     """The disks a target sees take its colour there (the others keep their neighbours' colour);
     records the fraction per object."""
@@ -323,7 +323,7 @@ def _wanted_views(run: _Run, fills: list[_ObjectFill], grid: float, external_fol
     plus every view the editor's folder has a target for; and the set of those external views."""
     wanted: list[tuple[int, list[int]]] = []
     for f in fills:
-        primary = inpaint.choose_primary(f.id, f.region.centres, f.region.plane.normal, run.cameras, grid)
+        primary = targets.choose_primary(f.id, f.region.centres, f.region.plane.normal, run.cameras, grid)
         if primary is None:
             run.failed.append({"id": f.id, "reason": "no camera sees the fill region: coloured from neighbours only"})
             continue
@@ -331,7 +331,7 @@ def _wanted_views(run: _Run, fills: list[_ObjectFill], grid: float, external_fol
         wanted.append((primary.view, [f.id]))
     external_frames = set()
     if external_folder is not None:
-        for view in inpaint.external_views(external_folder, run.cameras):
+        for view in targets.external_views(external_folder, run.cameras):
             external_frames.add(view)
             if view not in {v for v, _ in wanted}:
                 wanted.append((view, [f.id for f in fills]))
@@ -358,7 +358,7 @@ def _shared_frames(boxes: list[tuple[int, list[int], np.ndarray]], external_fram
 
 
 def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_ObjectFill], config: BackgroundConfig
-            ) -> tuple[list[inpaint.Frame], list[dict]]:
+            ) -> tuple[list[targets.Frame], list[dict]]:
     """Primary views, the frame crops around their objects' disks (objects of one view share a crop
     where they fit one: ``_shared_frames``; plus external frames), the targets (written under
     ``background/targets`` when asked); returns the frames and their records. Every frame's renders
@@ -369,7 +369,7 @@ def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_Obje
     margin = config.crops.margin_px + config.targets.loss_ring_px + config.targets.region_dilate_px
     boxes = []
     for view, oids in wanted:
-        box = inpaint.frame_box(cameras[view], disk_set.disks.subset(np.isin(disk_set.owner, oids)),
+        box = targets.frame_box(cameras[view], disk_set.disks.subset(np.isin(disk_set.owner, oids)),
                                 data.subset(np.zeros(0, np.int64)))
         if box is not None:
             boxes.append((view, oids, box))
@@ -379,21 +379,21 @@ def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_Obje
     boxes = _shared_frames(boxes, external_frames, size, margin)
     crops_of = [(oids, make_crop(cameras[v], v, b, (size,), margin)) for v, oids, b in boxes]  # one static size
     normals = disk_set.normals()
-    plans = [inpaint.plan_frame(data, removed, disk_set.disks, normals, np.isin(disk_set.owner, oids), crop, oids,
+    plans = [targets.plan_frame(data, removed, disk_set.disks, normals, np.isin(disk_set.owner, oids), crop, oids,
                                 np.zeros(3, np.float32), config) for oids, crop in crops_of]
     frames = []
-    for plan, images in zip(plans, inpaint.render_plans(plans, run.crops)):
+    for plan, images in zip(plans, targets.render_plans(plans, run.crops)):
         view = plan.crop.view
         try:
             if isinstance(images, RuntimeError):
                 raise images
-            external = (inpaint.read_external(external_folder, cameras[view])
+            external = (targets.read_external(external_folder, cameras[view])
                         if external_folder is not None and view in external_frames else None)
-            frames.append(inpaint.finish_frame(plan, images, cameras[view], config, external))
+            frames.append(targets.finish_frame(plan, images, cameras[view], config, external))
         except RuntimeError as err:  # e.g. the renderer's buffers: these objects are untargeted
             for oid in plan.objects:
                 run.records[oid].pop("primary_view", None)
                 run.failed.append({"id": oid, "reason": f"target frame {cameras[view].name}: {err}"})
     if config.targets.write and frames:
-        inpaint.write_targets(run.out_dir / layout.BACKGROUND_TARGETS, frames, cameras)
+        targets.write_targets(run.out_dir / layout.BACKGROUND_TARGETS, frames, cameras)
     return frames, [f.record(cameras) for f in frames]

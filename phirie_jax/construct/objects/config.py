@@ -7,9 +7,22 @@ every other default is ours and the field says why. Lengths are metres, angles d
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
-from kernels.registration import SearchSpec
-from phirie_jax.ranges import AT_LEAST_ONE, FRACTION, NON_NEGATIVE, POSITIVE, Each, Range, at_most, check_ranges
+from kernels.registration import Rotation, SearchSpec
+from phirie_jax.ranges import (
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    Choice,
+    Each,
+    Range,
+    at_most,
+    check_ranges,
+)
+
+Selection = Literal["evidence", "priority"]
 
 # The search fields the object stage sets for each call: which axes (own up first, or all six for a
 # batched retry), how many hypotheses go through one vmap, and whether to snap to the support.
@@ -55,12 +68,10 @@ class RegistrationConfig:
 
     def __post_init__(self):
         s = self.search
-        if s.rotation not in ("full", "yaw"):
-            raise ValueError(f"registration rotation {s.rotation!r} (expected 'full' or 'yaw')")
         subset = at_most(s.model_points, "search.model_points", low=1)
         check_ranges(self, {
             "tau": POSITIVE, "icp_max_correspondence": POSITIVE, "hypothesis_batch": AT_LEAST_ONE,
-            "min_obs_bucket": AT_LEAST_ONE, "seed": NON_NEGATIVE,
+            "min_obs_bucket": AT_LEAST_ONE, "seed": NON_NEGATIVE, "search.rotation": Choice.of(Rotation),
             "search.num_yaws": AT_LEAST_ONE, "search.scale_multipliers": Each(POSITIVE),
             "search.top_k": at_most(s.num_yaws * len(s.scale_multipliers), "search.num_yaws × scale multipliers", 1),
             "search.refine_other_axes": Range(0, 5), "search.model_points": AT_LEAST_ONE,
@@ -126,7 +137,7 @@ class ObjectsConfig:
     """
 
     generators: tuple[str, ...] = ("external", "visual_hull", "extrude", "primitive")
-    selection: str = "evidence"
+    selection: Selection = "evidence"
     retry: bool = True
     strict: bool = False
     min_points: int = 50
@@ -150,8 +161,6 @@ class ObjectsConfig:
     registration: RegistrationConfig = RegistrationConfig()
 
     def __post_init__(self):
-        if self.selection not in ("evidence", "priority"):
-            raise ValueError(f"objects selection {self.selection!r} (expected 'evidence' or 'priority')")
         known = ("external", "visual_hull", "primitive", "extrude")
         for g in self.generators:
             if g not in known and not g.startswith("external:"):
@@ -159,7 +168,7 @@ class ObjectsConfig:
         if not self.generators:
             raise ValueError("objects: the candidate pool (generators) is empty")
         check_ranges(self, {
-            "min_points": AT_LEAST_ONE, "max_residual": POSITIVE, "max_scale_discrepancy": POSITIVE,
+            "selection": Choice.of(Selection), "min_points": AT_LEAST_ONE, "max_residual": POSITIVE, "max_scale_discrepancy": POSITIVE,
             "min_support": FRACTION, "min_hull_volume": NON_NEGATIVE, "settle_threshold": POSITIVE,
             "hull_resolution": Range(2), "hull_margin": NON_NEGATIVE, "hull_dilate_px": NON_NEGATIVE,
             "hull_max_misses": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,

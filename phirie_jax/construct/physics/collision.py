@@ -273,14 +273,15 @@ class CoacdSettings:
 def coacd_settings(mesh: RepairedMesh, config: PhysicsConfig = PhysicsConfig()) -> CoacdSettings:
     """CoACD's settings for ``mesh`` (``AdaptiveCoacd``): its threshold raised for a small object (an
     absolute tolerance) and for a nearly convex one, fewer tree-search iterations, a simplified
-    input; the fixed ``PhysicsConfig`` settings when adaptation is off."""
-    adaptive = config.coacd_adaptive
+    input; the fixed ``CoacdConfig`` settings when adaptation is off."""
+    coacd = config.coacd
+    adaptive = coacd.adaptive
     hull = _hull_volume(mesh.vertices)
     solidity = min(1.0, mesh.volume / hull) if mesh.watertight and hull > 0 else 1.0
     extent = float(np.max(mesh.vertices.max(0) - mesh.vertices.min(0)))
     if not adaptive.enabled:
-        return CoacdSettings(config.coacd_threshold, config.coacd_mcts_iterations, 0, "fixed", solidity, extent)
-    threshold = max(config.coacd_threshold, min(1.0, 2 * adaptive.tolerance / max(extent, 1e-9)))
+        return CoacdSettings(coacd.threshold, coacd.mcts_iterations, 0, "fixed", solidity, extent)
+    threshold = max(coacd.threshold, min(1.0, 2 * adaptive.tolerance / max(extent, 1e-9)))
     convex = mesh.watertight and solidity >= adaptive.convex_solidity
     if convex:
         threshold = max(threshold, adaptive.convex_threshold)
@@ -303,7 +304,7 @@ def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig, settings: CoacdSetti
 
     settings = settings or coacd_settings(mesh, config)
     coacd.set_log_level("error")
-    preprocess = config.coacd_preprocess
+    preprocess = config.coacd.preprocess
     if preprocess == "auto":
         # CoACD's manifold remeshing closes what hole filling could not; a watertight mesh
         # skips it (CoACD's own "auto" remeshes self-intersecting closed meshes such as a mug
@@ -311,10 +312,10 @@ def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig, settings: CoacdSetti
         preprocess = "off" if mesh.watertight else "on"
     result = coacd.run_coacd(
         coacd.Mesh(mesh.vertices, mesh.faces), threshold=settings.threshold, max_convex_hull=config.max_parts,
-        preprocess_mode=preprocess, preprocess_resolution=config.coacd_preprocess_resolution,
-        resolution=config.coacd_resolution, mcts_nodes=config.coacd_mcts_nodes,
+        preprocess_mode=preprocess, preprocess_resolution=config.coacd.preprocess_resolution,
+        resolution=config.coacd.resolution, mcts_nodes=config.coacd.mcts_nodes,
         mcts_iterations=settings.mcts_iterations, decimate=True, max_ch_vertex=config.max_hull_vertices,
-        seed=config.coacd_seed)
+        seed=config.coacd.seed)
     return [np.asarray(v, np.float64) for v, _ in result]
 
 

@@ -7,6 +7,7 @@ every other default is ours and the field says why. Lengths are metres, angles d
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from phirie_jax.errors import ConfigValueError
 from phirie_jax.ranges import (
@@ -15,6 +16,7 @@ from phirie_jax.ranges import (
     OPEN_FRACTION,
     POSITIVE,
     POSITIVE_FRACTION,
+    Choice,
     Each,
     Positions,
     Range,
@@ -23,6 +25,12 @@ from phirie_jax.ranges import (
     check_ranges,
     shown,
 )
+
+DropBackend = Literal["auto", "mjx", "warp", "mujoco"]
+Solver = Literal["newton", "cg"]
+Jacobian = Literal["dense", "sparse"]
+Preprocess = Literal["auto", "on", "off"]
+SceneBackground = Literal["supports", "plane"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,9 +72,9 @@ class DropTestConfig:
     free_time: float = 2.0
     max_drift: float = 0.03
     min_final_height: float = -0.05
-    backend: str = "auto"
-    solver: str = "newton"
-    jacobian: str = "dense"
+    backend: DropBackend = "auto"
+    solver: Solver = "newton"
+    jacobian: Jacobian = "dense"
     solver_iterations: int = 4
     line_search_iterations: int = 4
     tolerance: float = 1e-6
@@ -77,16 +85,12 @@ class DropTestConfig:
     unroll: int = 1
 
     def __post_init__(self):
-        if self.backend not in ("auto", "mjx", "warp", "mujoco"):
-            raise ValueError(f"drop test backend {self.backend!r} (expected 'auto', 'mjx', 'warp' or 'mujoco')")
         check_ranges(self, {
+            "backend": Choice.of(DropBackend), "solver": Choice.of(Solver), "jacobian": Choice.of(Jacobian),
             "timestep": POSITIVE, "settle_time": NON_NEGATIVE, "free_time": NON_NEGATIVE, "max_drift": POSITIVE,
             "min_final_height": Range(), "solver_iterations": AT_LEAST_ONE, "line_search_iterations": AT_LEAST_ONE,
             "tolerance": NON_NEGATIVE, "vertex_budget": Range(4), "part_buckets": Each(AT_LEAST_ONE, increasing=True),
             "min_batch": AT_LEAST_ONE, "max_batch": at_least(self.min_batch, "min_batch"), "unroll": AT_LEAST_ONE})
-        if self.solver not in ("newton", "cg") or self.jacobian not in ("dense", "sparse"):
-            raise ValueError(f"drop test solver {self.solver!r} / jacobian {self.jacobian!r} "
-                             "(expected 'newton' or 'cg' / 'dense' or 'sparse')")
 
     @property
     def settle_steps(self) -> int:
@@ -106,10 +110,10 @@ class AdaptiveCoacd:
     in 19 s of CPU. Measurements behind the defaults: ``experiments/results/coacd_parts.json``.
 
     Attributes:
-        enabled: False: the fixed settings of ``PhysicsConfig`` for every object.
+        enabled: False: the fixed settings of ``CoacdConfig`` for every object.
         max_triangles: CoACD decomposes the mesh simplified to this many triangles (the body's
             volume, and the parts' ratio to it, stay those of the repaired mesh).
-        mcts_iterations: CoACD's tree-search iterations (the fixed ``coacd_mcts_iterations``: 60).
+        mcts_iterations: CoACD's tree-search iterations (the fixed ``CoacdConfig.mcts_iterations``: 60).
         tolerance: metres: an absolute concavity tolerance; CoACD's threshold is relative to the
             object's largest extent, so a small object's threshold is raised to ``2 · tolerance /
             extent`` (it stops at the same absolute detail as a large one).
@@ -132,6 +136,43 @@ class AdaptiveCoacd:
 
 
 @dataclasses.dataclass(frozen=True)
+class CoacdConfig:
+    """Convex decomposition by CoACD (``collision``): its own settings, seeded.
+
+    Attributes:
+        threshold: concavity threshold (issue: 0.05); ``PhysicsConfig.max_parts`` bounds the parts.
+        preprocess: manifold remeshing: "auto" = only for a mesh repair could not close; "on" /
+            "off" force it.
+        preprocess_resolution / resolution / seed: CoACD's own settings (its defaults; seeded).
+        mcts_nodes / mcts_iterations: CoACD's tree search, ours (10 / 60): faster with tighter
+            hulls than its defaults (physics_notes.md "CoACD tree search").
+        adaptive: the settings above adapted to each object's size and complexity
+            (``AdaptiveCoacd``; its ``enabled`` False keeps them fixed).
+        threads: OpenMP threads of each worker process (CoACD runs parts of its search in an
+            OpenMP team, one thread per core unless told): 0 = the CPU cores shared among the
+            workers (``PhysicsConfig.workers``), at least one each (with one worker per core: one
+            thread, instead of cores² threads waiting on each other).
+    """
+
+    threshold: float = 0.05
+    preprocess: Preprocess = "auto"
+    preprocess_resolution: int = 50
+    resolution: int = 2000
+    mcts_nodes: int = 10
+    mcts_iterations: int = 60
+    seed: int = 0
+    adaptive: AdaptiveCoacd = AdaptiveCoacd()
+    threads: int = 0
+
+    def __post_init__(self):
+        check_ranges(self, {
+            "threshold": POSITIVE_FRACTION, "preprocess": Choice.of(Preprocess),
+            "preprocess_resolution": AT_LEAST_ONE, "resolution": AT_LEAST_ONE, "mcts_nodes": AT_LEAST_ONE,
+            "mcts_iterations": AT_LEAST_ONE, "seed": NON_NEGATIVE,
+            "threads": Range(0, bound="0: the cores shared among the workers")})
+
+
+@dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     """Simulator assets: collision geometry, physics priors, MJCF/URDF export, drop tests.
 
@@ -149,25 +190,14 @@ class PhysicsConfig:
         solimp: MuJoCo's contact impedance (dmin, dmax, width, midpoint, power; its defaults).
         max_triangles: a mesh is simplified to at most this many triangles before convex
             decomposition (paper: 40K).
-        coacd_threshold / max_parts: CoACD concavity threshold and part limit (issue: 0.05, 16).
+        max_parts: CoACD's part limit (issue: 16).
         max_hull_vertices: vertices per convex part (CoACD decimation, then ours; ≤ the drop
             test's vertex budget).
-        coacd_preprocess: CoACD's manifold remeshing: "auto" = only for a mesh repair could not
-            close; "on" / "off" force it.
-        coacd_preprocess_resolution / coacd_resolution / coacd_seed: CoACD's own settings (its
-            defaults; seeded).
-        coacd_mcts_nodes / coacd_mcts_iterations: CoACD's tree search, ours (10 / 60): faster with
-            tighter hulls than its defaults (physics_notes.md "CoACD tree search").
-        coacd_adaptive: the settings above adapted to each object's size and complexity
-            (``AdaptiveCoacd``; its ``enabled`` False keeps them fixed).
+        coacd: the convex decomposition's settings (``CoacdConfig``).
         min_volume: a mesh whose convex hull encloses less than this (m³) has zero volume and
             fails (a flat sheet cannot be a rigid body).
         workers: processes building the objects' collision in parallel; 0: one per CPU core, 1: in
-            this process.
-        coacd_threads: OpenMP threads of each worker process (CoACD runs parts of its search in an
-            OpenMP team, one thread per core unless told): 0 = the CPU cores shared among the
-            workers, at least one each (with one worker per core: one thread, instead of cores²
-            threads waiting on each other).
+            this process (each runs ``coacd.threads`` OpenMP threads).
         background: "supports" (a box under each support the objects stand on, fitted to the
             scene surface, plus a floor plane) or "plane" (one plane at the lowest support).
         support_thickness: thickness of a support box, below its top face.
@@ -184,45 +214,30 @@ class PhysicsConfig:
     contact_timeconst: float = 0.02
     solimp: tuple[float, float, float, float, float] = (0.9, 0.95, 0.001, 0.5, 2.0)
     max_triangles: int = 40_000
-    coacd_threshold: float = 0.05
     max_parts: int = 16
     max_hull_vertices: int = 64
-    coacd_preprocess: str = "auto"
-    coacd_preprocess_resolution: int = 50
-    coacd_resolution: int = 2000
-    coacd_mcts_nodes: int = 10
-    coacd_mcts_iterations: int = 60
-    coacd_seed: int = 0
-    coacd_adaptive: AdaptiveCoacd = AdaptiveCoacd()
+    coacd: CoacdConfig = CoacdConfig()
     min_volume: float = 1e-9
     workers: int = 0
-    coacd_threads: int = 0
-    background: str = "supports"
+    background: SceneBackground = "supports"
     support_thickness: float = 0.04
     scene_solver_iterations: int = 20
     scene_line_search_iterations: int = 10
     drop_test: DropTestConfig = DropTestConfig()
 
     def __post_init__(self):
-        if self.background not in ("supports", "plane"):
-            raise ValueError(f"physics background {self.background!r} (expected 'supports' or 'plane')")
-        if self.coacd_preprocess not in ("auto", "on", "off"):
-            raise ValueError(f"coacd_preprocess {self.coacd_preprocess!r} (expected 'auto', 'on' or 'off')")
         largest_bucket = max(self.drop_test.part_buckets, default=1)  # empty: the drop test's own check says so
         check_ranges(self, {
             "mass": POSITIVE, "friction": NON_NEGATIVE, "restitution": Range(0, 1, high_open=True),
             "contact_timeconst": POSITIVE,
             # MuJoCo's solimp: dmin, dmax and midpoint in (0, 1), width > 0, power ≥ 1
             "solimp": Positions((OPEN_FRACTION, OPEN_FRACTION, POSITIVE, OPEN_FRACTION, AT_LEAST_ONE)),
-            "max_triangles": Range(4), "coacd_threshold": POSITIVE_FRACTION,
+            "max_triangles": Range(4),
             "max_parts": at_most(largest_bucket, "the largest of drop_test.part_buckets", low=1),
             "max_hull_vertices": at_most(self.drop_test.vertex_budget, "drop_test.vertex_budget", low=4),
-            "coacd_preprocess_resolution": AT_LEAST_ONE, "coacd_resolution": AT_LEAST_ONE,
-            "coacd_mcts_nodes": AT_LEAST_ONE, "coacd_mcts_iterations": AT_LEAST_ONE, "coacd_seed": NON_NEGATIVE,
             "min_volume": NON_NEGATIVE, "workers": Range(0, bound="0: one per CPU core"),
-            "coacd_threads": Range(0, bound="0: the cores shared among the workers"),
-            "support_thickness": POSITIVE, "scene_solver_iterations": AT_LEAST_ONE,
-            "scene_line_search_iterations": AT_LEAST_ONE})
+            "background": Choice.of(SceneBackground), "support_thickness": POSITIVE,
+            "scene_solver_iterations": AT_LEAST_ONE, "scene_line_search_iterations": AT_LEAST_ONE})
         for category, mass in self.category_masses:
             if mass not in POSITIVE:
                 raise ConfigValueError(type(self).__name__, "category_masses", f"{category} {shown(mass)}",

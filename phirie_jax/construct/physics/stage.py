@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax import layout
-from phirie_jax.construct.physics import droptest as dt
+from phirie_jax.construct.physics import droptest
 from phirie_jax.construct.physics.body import ObjectBody, body_name, object_body
 from phirie_jax.construct.physics.collision import MeshError, collision_from_mesh
 from phirie_jax.construct.physics.config import PhysicsConfig
@@ -98,7 +98,7 @@ def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manif
     objects = manifest.require("objects", "the object and physics stages")
     with manifest.timed("droptest"):
         entries, bodies = exported_bodies(objects, out_dir, manifest.up(), config)
-        record_verdicts(entries, dt.drop_test(bodies, config.drop_test), config)
+        record_verdicts(entries, droptest.drop_test(bodies, config.drop_test), config)
         manifest.set("objects", objects)
     manifest.write()
     return manifest.data
@@ -139,8 +139,8 @@ def build_object(entry: dict, category: str | None, out_dir: Path, config: Physi
     body = object_body(entry["id"], [read_part(out_dir / p) for p in paths], pose,
                        priors(category, config, shape, entry["id"]), paths)
     # MuJoCo must accept the body on its own before it goes into the scene
-    dt.build_model(dt.DropBody(body, np.eye(3)), dt.part_bucket(len(body.parts), config.drop_test),
-                   config.drop_test)
+    droptest.build_model(droptest.DropBody(body, np.eye(3)), droptest.part_bucket(len(body.parts), config.drop_test),
+                         config.drop_test)
     urdf = write_urdf(out_dir, body, entry.get("mesh"))
     pr = body.priors
     return {"collision": paths, "mass": pr.mass, "friction": pr.friction,
@@ -293,7 +293,7 @@ def _start_worker(parent: int, threads: int) -> None:
     """A collision worker: it dies with ``parent``; CoACD (and Open3D), imported only when its
     first object is built, read ``OMP_NUM_THREADS`` then. CoACD runs parts of its search in an
     OpenMP team of one thread per core by default: 16 workers on 16 cores made 256 threads
-    that waited for each other (``PhysicsConfig.coacd_threads``)."""
+    that waited for each other (``CoacdConfig.threads``)."""
     import os
 
     from phirie_jax.native import die_with_parent
@@ -313,11 +313,11 @@ def pool_record(objects: int, config: PhysicsConfig) -> dict:
 
 
 def worker_threads(workers: int, config: PhysicsConfig) -> int:
-    """OpenMP threads of each collision worker: ``config.coacd_threads``, or the CPU cores shared
+    """OpenMP threads of each collision worker: ``config.coacd.threads``, or the CPU cores shared
     among ``workers`` (at least one)."""
     import os
 
-    return config.coacd_threads or max(1, (os.cpu_count() or 1) // max(1, workers))
+    return config.coacd.threads or max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
 @contextlib.contextmanager
@@ -383,7 +383,7 @@ def _placed(body: ObjectBody, entry: dict) -> PlacedBody:
 
 
 def exported_bodies(objects: list[dict], out_dir: Path, up: np.ndarray,
-                    config: PhysicsConfig) -> tuple[list[dict], list[dt.DropBody]]:
+                    config: PhysicsConfig) -> tuple[list[dict], list[droptest.DropBody]]:
     """The exported objects' entries and drop bodies; an object whose files cannot be read gets
     its ``drop_test`` error here and is left out."""
     entries, bodies = [], []
@@ -391,22 +391,22 @@ def exported_bodies(objects: list[dict], out_dir: Path, up: np.ndarray,
         if not is_kept(entry) or not entry.get("collision") or not entry.get("physics"):
             continue
         try:
-            bodies.append(dt.drop_body(exported_body(entry, out_dir), up))
+            bodies.append(droptest.drop_body(exported_body(entry, out_dir), up))
         except (OSError, ValueError, KeyError, TypeError) as err:
-            entry["drop_test"] = dt.DropResult(None, None, None, None, None,
-                                               dt.resolve_backend(config.drop_test.backend),
-                                               f"exported files unreadable: {err}").record()
+            entry["drop_test"] = droptest.DropResult.not_run(droptest.resolve_backend(config.drop_test.backend),
+                                                             f"exported files unreadable: {err}").record()
             continue
         entries.append(entry)
     return entries, bodies
 
 
-def record_verdicts(entries: list[dict], results: list[dt.DropResult], config: PhysicsConfig) -> None:
+def record_verdicts(entries: list[dict], results: list[droptest.DropResult], config: PhysicsConfig) -> None:
     """Each entry's ``drop_test``, ``checks.settling`` and ``unresolved_checks`` from its result."""
-    method = f"drop test of the exported collision parts ({dt.resolve_backend(config.drop_test.backend, len(entries))})"
+    backend = droptest.resolve_backend(config.drop_test.backend, len(entries))
+    method = f"drop test of the exported collision parts ({backend})"
     for entry, result in zip(entries, results):
         entry["drop_test"] = result.record()
-        entry.setdefault("checks", {})["settling"] = dt.settling_check(result, config.drop_test, method)
+        entry.setdefault("checks", {})["settling"] = droptest.settling_check(result, config.drop_test, method)
         if "unresolved_checks" in entry:
             bad = [n for n in entry["unresolved_checks"] if n != "settling"]
             entry["unresolved_checks"] = bad + (["settling"] if result.stable is False else [])

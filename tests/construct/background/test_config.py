@@ -22,7 +22,7 @@ def test_paper_defaults():
 
 
 @pytest.mark.parametrize("make, message", [
-    (lambda: TargetsConfig(inpaint="lama"), "background inpaint 'lama'"),
+    (lambda: TargetsConfig(inpaint="lama"), "TargetsConfig.inpaint lama: expected one of exemplar, telea, ns"),
     (lambda: RemovalConfig(mask_votes=0), r"RemovalConfig.mask_votes 0: expected ≥ 1"),
     (lambda: FillConfig(init_opacity=1.0), r"FillConfig.init_opacity 1: expected in \(0, 1\)"),
     (lambda: CropConfig(target_sizes=(8,)), r"CropConfig.target_sizes 8: .* ≥ 16 \(one 16-pixel tile\)"),

@@ -9,11 +9,10 @@ from scipy.spatial import Delaunay
 
 from phirie_jax.construct.physics import collision
 from phirie_jax.construct.physics.collision import MeshError, collision_from_mesh, convex_part, ghost_part, repair_mesh
-from phirie_jax.construct.physics.config import PhysicsConfig
+from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
 
 # CoACD with lighter search settings: the same algorithm, seconds instead of tens of seconds
-FAST = PhysicsConfig(coacd_resolution=1000, coacd_preprocess_resolution=30, coacd_mcts_iterations=60,
-                     coacd_mcts_nodes=10)
+FAST = PhysicsConfig(coacd=CoacdConfig(resolution=1000, preprocess_resolution=30, mcts_iterations=60, mcts_nodes=10))
 VOLUME_RTOL = 1e-9
 
 
@@ -34,7 +33,7 @@ def test_coacd_splits_an_annulus_into_several_parts_within_the_vertex_budget():
     centre_inside = [Delaunay(p.vertices).find_simplex([[0.0, 0.0, 0.0]])[0] >= 0 for p in result.parts]
     assert not any(centre_inside)
     assert report["time_s"] > 0 and report["repair"]["watertight"]
-    assert report["coacd"]["tier"] == "concave" and report["coacd"]["threshold"] >= FAST.coacd_threshold
+    assert report["coacd"]["tier"] == "concave" and report["coacd"]["threshold"] >= FAST.coacd.threshold
 
 
 def test_a_coacd_failure_falls_back_to_the_convex_hull_and_says_so(monkeypatch):
@@ -154,14 +153,14 @@ def test_coacd_settings_follow_the_objects_size_and_complexity():
     concave, convex, large = coacd_settings(ring, config), coacd_settings(ball, config), coacd_settings(big_ring, config)
     assert concave.tier == "concave" and convex.tier == "nearly convex" and large.tier == "concave"
     assert concave.solidity == pytest.approx(1 - 0.03**2 / 0.05**2, rel=0.02)
-    assert convex.threshold == config.coacd_adaptive.convex_threshold
+    assert convex.threshold == config.coacd.adaptive.convex_threshold
     # the absolute tolerance: the 10 cm ring stops at 2 · 3 mm / 10 cm, the 50 cm one at the base threshold
-    assert concave.threshold == pytest.approx(2 * config.coacd_adaptive.tolerance / 0.1, rel=1e-3)
-    assert large.threshold == config.coacd_threshold
-    assert concave.mcts_iterations == config.coacd_adaptive.mcts_iterations < config.coacd_mcts_iterations
-    fixed = coacd_settings(ring, PhysicsConfig(coacd_adaptive=AdaptiveCoacd(enabled=False)))
+    assert concave.threshold == pytest.approx(2 * config.coacd.adaptive.tolerance / 0.1, rel=1e-3)
+    assert large.threshold == config.coacd.threshold
+    assert concave.mcts_iterations == config.coacd.adaptive.mcts_iterations < config.coacd.mcts_iterations
+    fixed = coacd_settings(ring, PhysicsConfig(coacd=CoacdConfig(adaptive=AdaptiveCoacd(enabled=False))))
     assert (fixed.tier, fixed.threshold, fixed.mcts_iterations, fixed.max_triangles) == (
-        "fixed", config.coacd_threshold, config.coacd_mcts_iterations, 0)
+        "fixed", config.coacd.threshold, config.coacd.mcts_iterations, 0)
 
 
 def test_coacd_decomposes_a_simplified_input_and_keeps_the_repaired_volume(monkeypatch):
@@ -175,7 +174,7 @@ def test_coacd_decomposes_a_simplified_input_and_keeps_the_repaired_volume(monke
 
     monkeypatch.setattr(collision, "_coacd_parts", recording)
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)     # 5120 triangles
-    config = PhysicsConfig(coacd_adaptive=AdaptiveCoacd(max_triangles=1000))
+    config = PhysicsConfig(coacd=CoacdConfig(adaptive=AdaptiveCoacd(max_triangles=1000)))
     result = collision_from_mesh(sphere.vertices, sphere.faces, config)
     assert seen["triangles"] <= 1000 and result.report["coacd"]["max_triangles"] == 1000
     assert result.report["mesh_volume"] == pytest.approx(sphere.volume, rel=1e-9)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
+from phirie_jax.construct.physics.config import CoacdConfig, DropTestConfig, PhysicsConfig
 from phirie_jax.construct.physics.mjcf import settle_scene
 from phirie_jax.construct.physics.parts import read_part
 from phirie_jax.construct.physics.stage import run_droptest, run_physics, start_collision
@@ -20,8 +20,8 @@ from tests.construct.physics.test_collision import fin_mesh
 from tests.processes import running, wait_for
 from tests.fixtures.constructed import constructed_folder
 
-C_BACKEND = PhysicsConfig(coacd_resolution=1000, coacd_preprocess_resolution=30, coacd_mcts_iterations=60,
-                          coacd_mcts_nodes=10, drop_test=DropTestConfig(backend="mujoco"))
+C_BACKEND = PhysicsConfig(coacd=CoacdConfig(resolution=1000, preprocess_resolution=30, mcts_iterations=60,
+                                            mcts_nodes=10), drop_test=DropTestConfig(backend="mujoco"))
 PLACE_TOL = 2e-3      # m: placed collision parts vs the ground-truth world mesh (hull decimation)
 SETTLE_LIMIT = 0.03   # m: the bar for the exported scene
 BAD = {90: (np.zeros((0, 3)), np.zeros((0, 3), int)), 91: fin_mesh(),

@@ -83,11 +83,12 @@ def environment_build(entry, category, out_dir, config):
 
 
 def test_each_worker_gets_its_share_of_the_cores(tmp_path):
-    from phirie_jax.construct.physics.config import PhysicsConfig
+    from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
     from phirie_jax.construct.physics.stage import build_objects
 
     entries = [{"id": 1}, {"id": 2}]
     shared = build_objects(entries, {}, tmp_path, PhysicsConfig(workers=2), build=environment_build)
     assert [o["update"]["omp"] for o in shared] == [str(max(1, (os.cpu_count() or 1) // 2))] * 2
-    told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd_threads=3), build=environment_build)
+    told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd=CoacdConfig(threads=3)),
+                         build=environment_build)
     assert told[0]["update"]["omp"] == "3"
