@@ -289,10 +289,11 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
             surface: Path | None = None, frame: Annotated[FrameConfig, tyro.conf.OmitArgPrefixes] = FrameConfig(),
             observe_width: int | None = None, prompt: Prompts = (), mass: tuple[str, ...] = (),
             config: ConvertConfig = ConvertConfig(), allow_outside_paths: bool = False) -> None:
-    """Scene → interactive scene: frame (metres, +z up) → observe → objects → physics →
-    background, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
-    Gaussians, checks; collision, scene.xml, URDFs, drop tests; background.ply with the objects
-    removed and what they uncover filled). Every output is in the metric, +z-up world frame.
+    """Scene → interactive scene: frame (metres, +z up) → observe → objects → background →
+    physics, each adding to OUT/manifest.json (frame; instances; objects with meshes, visual
+    Gaussians, checks; background.ply with the objects removed and what they uncover filled;
+    collision, built while the background runs, scene.xml, URDFs, drop tests). Every output is in
+    the metric, +z-up world frame.
 
     Args:
         scene: a scene folder.

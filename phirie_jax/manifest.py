@@ -31,9 +31,12 @@ from phirie_jax.layout import MANIFEST, resolve
 
 SCHEMA = "phirie/1"
 
-# The stages of a conversion in their order, as ``stages`` records them: ``pending`` (this run will
-# run it), ``running`` (started, not finished: the run was killed or still runs), ``complete``,
-# ``failed`` (``failed_stage`` says why) or ``outdated`` (an earlier stage ran again after it).
+# The stages of a conversion in the order their outputs build on each other (the background keeps
+# the Gaussians of an object physics fails, so it follows physics; ``pipeline.STAGES`` runs it
+# first, beside the collision, and again when physics fails one), as ``stages`` records them:
+# ``pending`` (this run will run it), ``running`` (started, not finished: the run was killed or still
+# runs), ``complete``, ``failed`` (``failed_stage`` says why) or ``outdated`` (an earlier stage ran
+# again after it).
 STAGE_NAMES = ("frame", "observe", "objects", "physics", "background")
 PENDING, RUNNING, COMPLETE, FAILED, OUTDATED = "pending", "running", "complete", "failed", "outdated"
 # An object's status (``objects[].status``): every check passed; kept although a check failed (the

@@ -1,11 +1,12 @@
 """The whole conversion: scene folder → interactive scene folder.
 
-Stages run in order, each reading and extending ``OUT/manifest.json``:
+Stages run in the order of ``STAGES``, each reading and extending ``OUT/manifest.json``:
 frame (up and metres: the capture moved into a metric, +z-up world) → observe (instances)
-→ objects (assets) → physics (collision, MJCF/URDF, drop tests) → background (removal,
-inpainting targets, fill). The background runs while CoACD's worker processes build the
-collision (it needs only the objects' meshes), and again in the rare case that physics fails
-an object it removed. The cameras, in the world frame, are written beside the results
+→ objects (assets) → background (removal, inpainting targets, fill) → physics (collision,
+MJCF/URDF, drop tests). The physics stage's collision starts in CoACD's worker processes as soon
+as the objects exist, so it is built while the background runs (which needs only the objects'
+meshes); the background runs again in the rare case that physics fails an object it removed
+(``Stage``). The cameras, in the world frame, are written beside the results
 (``transforms.json``) so the output folder is self-contained. A stage that fails is recorded
 in the manifest (``failed_stage``) and raised as a ``StageError`` (bad input stays a
 ``SceneInputError``); the stages after it do not run.
@@ -23,6 +24,7 @@ interrupted earlier run left in the output folder (``io.atomic``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import shutil
@@ -30,6 +32,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -86,6 +89,8 @@ class Run:
     masks: str | Path | None = None
     frame: SceneFrame | None = None
     prompts: tuple = ()          # checked prompts (observe.prompts.Prompt): the mask source when given
+    collision: Any = None        # physics.stage.CollisionJob started ahead of the physics stage, or None
+    kept: frozenset | None = None  # ids of the objects kept when it started (the background assumes they stay)
 
     @functools.cached_property
     def scene(self) -> SceneInput:
@@ -165,17 +170,54 @@ def _objects(run: Run) -> Run:
     return run
 
 
-def _physics(run: Run, collision=None) -> Run:
+def _physics(run: Run) -> Run:
     from phirie_jax.construct.physics.stage import run_physics
 
-    run_physics(run.capture.root, run.out_dir, run.config.physics, collision=collision)
+    run_physics(run.capture.root, run.out_dir, run.config.physics, collision=run.collision)
     return run
+
+
+def _start_collision(run: Run) -> tuple[Run, contextlib.AbstractContextManager]:
+    """The kept objects' collision started in CoACD's worker processes (the physics stage takes its
+    outcomes); the job terminates its workers if a stage fails meanwhile. A job that cannot start
+    is left to the physics stage, which meets its error again and records it as its failure."""
+    from phirie_jax.construct.physics.stage import start_collision
+
+    run = dataclasses.replace(run, kept=_accepted_ids(run.out_dir))
+    try:
+        collision = start_collision(run.out_dir, run.config.physics)
+    except Exception:  # noqa: BLE001 — the physics stage meets it again and records it as its failure
+        return run, contextlib.nullcontext()
+    return dataclasses.replace(run, collision=collision), collision
+
+
+def _background_again(run: Run) -> tuple[str, ...]:
+    """The background again when physics failed an object the background removed as kept."""
+    return ("background",) if run.kept is not None and _accepted_ids(run.out_dir) != run.kept else ()
 
 
 def _background(run: Run) -> Run:
     from phirie_jax.construct.background.stage import run_background
 
     run_background(run.capture.root, run.out_dir, run.config.background, scene=run.scene)
+    return run
+
+
+def _run_stages(run: Run, selected: list[str], progress, created: Path | None) -> Run:
+    """The ``selected`` stages in order (``Stage``: work started ahead, stages run again)."""
+    started: set[str] = set()
+    with contextlib.ExitStack() as jobs:
+        for k, name in enumerate(selected):
+            for later in selected[k + 1:]:   # work that can start now, to run beside this stage
+                stage = STAGES[later]
+                if stage.start is not None and later not in started and not set(stage.needs) & set(selected[k:]):
+                    run, job = stage.start(run)
+                    jobs.enter_context(job)
+                    started.add(later)
+            run = _run_stage(name, STAGES[name].run, run, progress, created)
+            for earlier in STAGES[name].again(run):
+                if earlier in selected[:k]:
+                    run = _run_stage(earlier, STAGES[earlier].run, run, progress, created)
     return run
 
 
@@ -207,36 +249,38 @@ def _mark(out_dir: Path, name: str, status: str) -> None:
     manifest.write()
 
 
-def _physics_beside_background(run: Run, progress, created: Path | None) -> Run:
-    """The physics and background stages with CoACD's worker processes running beside the
-    background stage (which uses the accelerator and needs only the objects' meshes): the
-    collision starts, the background runs, the physics stage takes the collision and goes on.
-    The background assumed that every object the objects stage accepted stays; when physics
-    fails one of them, the background runs again so that object's Gaussians stay in it."""
-    from phirie_jax.construct.physics.stage import start_collision
-
-    accepted = _accepted_ids(run.out_dir)
-    try:
-        collision = start_collision(run.out_dir, run.config.physics)
-    except Exception:  # noqa: BLE001 — the physics stage meets it again and records it as its failure
-        run = _run_stage("physics", _physics, run, progress, created)
-        return _run_stage("background", _background, run, progress, created)
-    with collision:
-        run = _run_stage("background", _background, run, progress, created)
-        run = _run_stage("physics", lambda r: _physics(r, collision), run, progress, created)
-    if _accepted_ids(run.out_dir) != accepted:
-        run = _run_stage("background", _background, run, progress, created)
-    return run
+def _accepted_ids(out_dir: Path) -> frozenset:
+    return frozenset(e["id"] for e in Manifest.load_or_create(out_dir).get("objects") or [] if is_kept(e))
 
 
-def _accepted_ids(out_dir: Path) -> set:
-    return {e["id"] for e in Manifest.load_or_create(out_dir).get("objects") or [] if is_kept(e)}
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of the conversion: ``run`` takes the run and returns it.
+
+    Attributes:
+        run: the stage itself.
+        needs: the stages whose outputs ``start`` reads.
+        start: work begun in worker processes before the stage's turn, as soon as every stage of
+            ``needs`` this run runs has run and another stage runs first (it runs meanwhile);
+            returns the run (which hands the work to ``run``) and a context that ends the work
+            when a stage fails before it is taken.
+        again: after the stage ran, the stages that ran before it to run again (what they assumed
+            no longer holds).
+    """
+
+    run: Callable[[Run], Run]
+    needs: tuple[str, ...] = ()
+    start: Callable[[Run], tuple[Run, contextlib.AbstractContextManager]] | None = None
+    again: Callable[[Run], tuple[str, ...]] = lambda run: ()
 
 
-# The stage table: run in this order, each reading what the earlier ones wrote (``run_convert``
-# runs the background beside the physics stage's collision: ``_physics_beside_background``).
-STAGES: dict[str, Callable[[Run], Run]] = {
-    "frame": _frame, "observe": _observe, "objects": _objects, "physics": _physics, "background": _background}
+# The stage table, in the order the stages run, each reading what the earlier ones wrote: the
+# physics stage's collision is built while the background runs. ``manifest.STAGE_NAMES`` orders
+# what each stage's output is made from (the background keeps the Gaussians of an object physics fails).
+STAGES: dict[str, Stage] = {
+    "frame": Stage(_frame), "observe": Stage(_observe), "objects": Stage(_objects),
+    "background": Stage(_background),
+    "physics": Stage(_physics, needs=("frame", "objects"), start=_start_collision, again=_background_again)}
 
 
 # What io.scene reads cameras from, to tell a lone PLY's folder that holds them.
@@ -414,13 +458,7 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
             _clean(out_dir)
             selected = [n for n in STAGES if stages is None or n == "frame" or n in stages]
             _start(scene, run.out_dir, selected, inputs)
-            for name in selected:
-                if name == "background" and "physics" in selected:
-                    continue   # ran beside the physics stage's collision
-                if name == "physics" and "background" in selected:
-                    run = _physics_beside_background(run, progress, created)
-                else:
-                    run = _run_stage(name, STAGES[name], run, progress, created)
+            run = _run_stages(run, selected, progress, created)
             manifest = Manifest.load_or_create(run.out_dir)
             manifest.record_timing("convert", time.perf_counter() - start)
             manifest.write()

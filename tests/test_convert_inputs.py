@@ -15,7 +15,7 @@ import pytest
 
 from phirie_jax import pipeline
 from phirie_jax.cli import main
-from phirie_jax.errors import SceneInputError
+from phirie_jax.errors import SceneInputError, StageError
 from phirie_jax.io.camera import intrinsics_matrix
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.transforms_json import write_transforms_json
@@ -111,7 +111,7 @@ def failing_frame(run):
 
 
 def test_an_input_error_a_stage_finds_removes_the_folder_this_run_created(scene, tmp_path, monkeypatch):
-    monkeypatch.setattr(pipeline, "STAGES", {"frame": failing_frame})
+    monkeypatch.setattr(pipeline, "STAGES", {"frame": pipeline.Stage(failing_frame)})
     with pytest.raises(SceneInputError, match="cannot be estimated"):
         pipeline.run_convert(scene, tmp_path / "new" / "out")
     assert not (tmp_path / "new").exists()
@@ -123,6 +123,66 @@ def test_an_input_error_a_stage_finds_removes_the_folder_this_run_created(scene,
     assert failed["stage"] == "frame" and "cannot be estimated" in failed["error"]
 
 
+class Job:
+    """Work started ahead of its stage: says when it ends and whether a failure ended it."""
+
+    def __init__(self, log: list):
+        self.log = log
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, err, trace):
+        self.log.append("job cancelled" if kind is not None else "job ends")
+
+
+def logging_table(log: list, again: tuple[str, ...] = (), failing: str | None = None) -> dict:
+    """The stage table with each stage replaced by one that logs its name (and ``failing`` raising)."""
+    def step(name):
+        def run(run):
+            log.append(name)
+            if name == failing:
+                raise RuntimeError(f"{name} failed (a test)")
+            return run
+        return run
+
+    def start(run):
+        log.append("start physics")
+        return run, Job(log)
+
+    table = {name: pipeline.Stage(step(name)) for name in pipeline.STAGES}
+    table["physics"] = pipeline.Stage(step("physics"), needs=pipeline.STAGES["physics"].needs, start=start,
+                                      again=lambda run: again)
+    return table
+
+
+@pytest.mark.parametrize("stages, again, expected", [
+    (None, (), ["frame", "observe", "objects", "start physics", "background", "physics", "job ends"]),
+    (None, ("background",),
+     ["frame", "observe", "objects", "start physics", "background", "physics", "background", "job ends"]),
+    (("background", "physics"), (), ["frame", "start physics", "background", "physics", "job ends"]),
+    (("physics",), ("background",), ["frame", "physics"]),   # nothing to run beside it; no background to redo
+    (("objects", "physics"), (), ["frame", "objects", "physics"]),
+])
+def test_the_stages_run_in_the_table_order_with_work_started_ahead(scene, tmp_path, monkeypatch, stages, again,
+                                                                   expected):
+    """The physics stage's collision starts once the frame and the objects are done and a stage is left
+    to run beside it (the background); a stage it outdates runs again if this run ran it."""
+    assert list(pipeline.STAGES) == ["frame", "observe", "objects", "background", "physics"]
+    log = []
+    monkeypatch.setattr(pipeline, "STAGES", logging_table(log, again))
+    pipeline.run_convert(scene, tmp_path / "out", masks="auto", stages=stages)
+    assert log == expected
+
+
+def test_work_started_ahead_ends_when_a_stage_fails_before_it_is_taken(scene, tmp_path, monkeypatch):
+    log = []
+    monkeypatch.setattr(pipeline, "STAGES", logging_table(log, failing="background"))
+    with pytest.raises(StageError, match="background failed"):
+        pipeline.run_convert(scene, tmp_path / "out", masks="auto")
+    assert log == ["frame", "observe", "objects", "start physics", "background", "job cancelled"]
+
+
 STALE = [".manifest.json.k3j_x9q2.tmp", "observe/.instance_1.npz.a1b2c3d4.tmp", "objects/1/.mesh.obj.zzzzzzzz.tmp",
          "objects/1/collision/.part_00.obj.0a_b1c2d.tmp", "background/.x.abcdefgh.tmp",
          "background/targets/.0.png.qwertyui.tmp"]
@@ -131,7 +191,7 @@ KEPT = ["notes.tmp", ".notes.tmp", ".mesh.obj.ABCDEFGH.tmp", ".mesh.obj.abc.tmp"
 
 
 def test_a_run_removes_the_temporaries_a_killed_run_left_and_nothing_else(scene, tmp_path, monkeypatch):
-    monkeypatch.setattr(pipeline, "STAGES", {"frame": lambda run: run})
+    monkeypatch.setattr(pipeline, "STAGES", {"frame": pipeline.Stage(lambda run: run)})
     out = tmp_path / "out"
     out.mkdir()
     (out / "manifest.json").write_text('{"schema": "phirie/1"}')   # the first file a run writes

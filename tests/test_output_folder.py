@@ -291,7 +291,7 @@ def test_known_size_of_an_instance_the_masks_lack_is_refused_before_any_work(cap
 
 
 def test_known_size_with_automatic_masks_says_when_it_is_checked(captures, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(pipeline, "STAGES", {"frame": lambda run: run})
+    monkeypatch.setattr(pipeline, "STAGES", {"frame": pipeline.Stage(lambda run: run)})
     pipeline.run_convert(captures[0], tmp_path / "out", masks="auto", frame=pipeline.FrameConfig(known_size="99=0.1"))
     assert ("phirie: note: --known-size 99=0.1: instance 99 is checked after observation"
             in capsys.readouterr().err)
