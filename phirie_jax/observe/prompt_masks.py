@@ -21,6 +21,7 @@ from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, camera_pro
 from phirie_jax.observe.prompt_config import PromptConfig
 from phirie_jax.observe.prompt_lift import LiftedPrompt, Solid, lift_prompt, rendered_set, working
 from phirie_jax.observe.prompts import Prompt
+from phirie_jax.observe.support import Support
 from phirie_jax.types import Camera, GaussianSplatData
 
 
@@ -113,6 +114,22 @@ def lift_prompts(gaussians: GaussianSplatData, cameras: Sequence[Camera], prompt
     return rendered, rows, owners(rendered, solid, tree, lifted, config.prompts), lifted
 
 
+def prompt_supports(lifted: Sequence[LiftedPrompt]) -> dict[int, Support]:
+    """Prompt id → the support its lift found under the object (``prompt_lift.find_support``: the
+    peak of the flat, up-facing Gaussians below it, with the cameras above it), for the lifted
+    prompts that found one. It is where the object meets what it stands on; rays around the
+    footprint (``observe.support``) land on whatever lies around it, which on a soft support (a
+    duvet the object sinks into) is centimetres lower, and a hull carved down to there grows a
+    rounded underside that the object rocks on."""
+    found = {}
+    for item in lifted:
+        record = item.record.get("support") if item.members is not None else None
+        if record and "height" in record:
+            found[item.id] = Support(float(record["height"]), "prompt", int(record["gaussians"]),
+                                     np.array([0.0, 0.0, 1.0]))
+    return found
+
+
 PROMPT_RECORD = "observe/prompts.npz"   # each prompt's Gaussians: rows of the scene's PLY and their owner
 
 
@@ -159,6 +176,10 @@ class PromptMasks:
         """Keep the labels of a render (with ``features``) of camera ``view`` at the working width."""
         self.labels[view] = owner_labels(np.asarray(output.features, np.float64), np.asarray(output.alpha, np.float64),
                                          self.ids, self.config.prompts)
+
+    def supports(self) -> dict[int, Support]:
+        """Prompt id → the support its lift found (``prompt_supports``)."""
+        return prompt_supports(self.lifted)
 
     def views(self) -> Iterator[ViewMasks | ViewFailure]:
         return prompt_masks(self.rendered, self.cameras, self.owner, self.lifted, self.config.prompts,

@@ -332,13 +332,14 @@ def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Rayc
 
 
 def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path,
-               manifest: Manifest, raycaster: Raycaster) -> tuple[list[dict], list[dict], list[dict]]:
+               manifest: Manifest, raycaster: Raycaster, supports: dict[int, Support] | None = None
+               ) -> tuple[list[dict], list[dict], list[dict]]:
     """Voxel association of the lifted proposals → (instance records, failed instances, rejected)."""
     with manifest.timed("observe.associate"):
         assoc = associate(lifted.proposals, config.voxel, config.overlap, config.min_views)
     groups = [(instance_id, [lifted.proposals[i] for i in idx]) for instance_id, idx in assoc.groups]
     with manifest.timed("observe.consistency"):
-        kept = _consistent_points(groups, lifted.mask_paths, cameras, config, out_dir, manifest, raycaster)
+        kept = _consistent_points(groups, lifted.mask_paths, cameras, config, out_dir, manifest, raycaster, supports)
     instances, failed = [], []
     rejected = [{k: v for k, v in r.items() if k != "proposal"} for r in assoc.rejected]
     with manifest.timed("observe.write"):
@@ -374,19 +375,21 @@ def _seen_too_little(record: dict, config: ObserveConfig) -> str | None:
 
 def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dict[int, str],
                        cameras: tuple[Camera, ...], config: ObserveConfig, out_dir: Path, manifest: Manifest,
-                       raycaster: Raycaster) -> list[tuple[np.ndarray, Support, dict]]:
+                       raycaster: Raycaster, supports: dict[int, Support] | None = None
+                       ) -> list[tuple[np.ndarray, Support, dict]]:
     """Per instance (Q_i, its support, points dropped by reason): the lifted points seen from ≥
     ``min_views`` views, inside the instance's silhouette in ≥ ``silhouette_agreement`` of the
-    views that judge them, and not on the support found under them."""
+    views that judge them, and not on the support found under them (``supports``: an instance's
+    support found before, e.g. under a prompt's object; else ``observe.support.find_support``)."""
     frame = gravity_frame(manifest.up(), "scene frame")
     thinned = [instance_points(instance_id, members, config) for instance_id, members in groups]
     agreement = (silhouette_agreement([p for p, _ in thinned], [m for _, m in groups], mask_paths, cameras, out_dir)
                  if config.silhouette_agreement > 0 else [np.full(len(p), np.nan) for p, _ in thinned])
     kept = []
-    for (points, single_view), agree in zip(thinned, agreement):
+    for (instance_id, _), (points, single_view), agree in zip(groups, thinned, agreement):
         inside = ~(agree < config.silhouette_agreement)  # NaN (no view judged it) keeps the point
         points = points[inside]
-        support = find_support(frame.to_gravity(points), frame, raycaster)
+        support = (supports or {}).get(instance_id) or find_support(frame.to_gravity(points), frame, raycaster)
         off_support = np.ones(len(points), bool)
         if support.is_plane and config.support_clearance is not None:
             off_support = frame.to_gravity(points)[:, 2] >= support.height + config.support_clearance
@@ -434,7 +437,8 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
             views, source = mask_views(scene, masks, raycaster, config, record, manifest.up(), manifest.get("frame"),
                                        prompt_masks)
         lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
-        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest, raycaster)
+        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest, raycaster,
+                                                 prompt_masks.supports() if prompt_masks is not None else None)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),
                              "failed_views": lifted.failures},
                       proposals=len(lifted.proposals), rejected_proposals=lifted.rejected + rejected,

@@ -32,22 +32,24 @@ MIN_PLANE_HITS = 20                    # support hits needed to fit the support'
 @dataclasses.dataclass(frozen=True)
 class Support:
     height: float         # support plane height in the gravity frame
-    source: str           # "surface" (rays onto the scene surface) or "observed points"
+    source: str           # "surface" (rays onto the scene surface), "prompt" (found under a prompt's
+                          # object: ``PromptMasks.supports``) or "observed points"
     hits: int             # rays that hit the support
     normal: np.ndarray    # (3,) gravity-frame normal of the fitted plane (+z without a fit)
 
     @property
     def is_plane(self) -> bool:
         """Found on the scene surface by enough rays to be a plane under the object (a few hits
-        on a wall-mounted object's plaque or a neighbour are not one)."""
-        return self.source == "surface" and self.hits >= MIN_PLANE_HITS
+        on a wall-mounted object's plaque or a neighbour are not one), or under a prompt's object
+        by enough flat, up-facing Gaussians."""
+        return self.source in ("surface", "prompt") and self.hits >= MIN_PLANE_HITS
 
     def as_record(self) -> dict:
         return {"height": round(self.height, 6), "source": self.source, "hits": self.hits,
                 "normal": np.round(self.normal, 6).tolist()}
 
     @staticmethod
-    def from_record(record: dict) -> "Support":
+    def from_record(record: dict) -> Support:
         return Support(float(record["height"]), str(record["source"]), int(record["hits"]),
                        np.asarray(record["normal"], np.float64))
 
@@ -84,5 +86,5 @@ def find_support(q_gravity: np.ndarray, frame: GravityFrame, raycaster=None) -> 
                 centred = near - near.mean(0)
                 normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
                 normal = normal if normal[2] > 0 else -normal
-            return Support(float(np.median(near[:, 2])), "surface", int(len(near)), normal)
+            return Support(float(np.median(near[:, 2])), "surface", len(near), normal)
     return Support(base, "observed points", 0, np.array([0.0, 0.0, 1.0]))

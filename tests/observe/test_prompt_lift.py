@@ -92,6 +92,42 @@ def test_each_prompt_is_recorded_and_one_that_cannot_be_lifted_says_why(observed
         assert set(np.unique(data["owner"])) == {1, 2} and len(data["rows"]) == len(data["owner"])
 
 
+def test_an_instance_stands_on_the_support_its_prompt_found(observed):
+    """The lift's support (the flat layer under the object) is the instance's, not the rays' around
+    its footprint: on a soft support those land centimetres lower and the hull grows a round bottom."""
+    _root, _out, manifest = observed
+    lifted = {p["id"]: p for p in manifest["observe"]["prompts"]["lifted"]}
+    checked = 0
+    for inst in manifest["instances"]:
+        found = lifted[inst["id"]]["support"]
+        if "height" in found:
+            assert inst["support"]["source"] == "prompt" and inst["support"]["hits"] == found["gaussians"]
+            assert inst["support"]["height"] == pytest.approx(found["height"], abs=1e-6)
+            checked += 1
+        else:
+            assert inst["support"]["source"] != "prompt"
+    assert checked >= 1
+
+
+def test_prompt_supports_are_those_the_lift_found():
+    from phirie_jax.observe.prompt_lift import LiftedPrompt
+    from phirie_jax.observe.prompt_masks import prompt_supports
+    from phirie_jax.observe.prompts import Prompt
+
+    def lifted(ident, support, members=True):
+        return LiftedPrompt(ident, Prompt("0000.png", point=(1.0, 1.0)), 0, np.arange(3) if members else None, 0.01,
+                            {"support": support})
+
+    found = prompt_supports([lifted(1, {"height": 0.75, "band": 0.005, "gaussians": 40, "span": [0.3, 0.2]}),
+                             lifted(2, {"none": "only 56% of the cameras stand above the flat layer at 0.700 m"}),
+                             lifted(3, {"height": 0.5, "band": 0.005, "gaussians": 40, "span": [0.3, 0.2]},
+                                    members=False)])
+    assert list(found) == [1]
+    assert found[1].height == 0.75 and found[1].source == "prompt" and found[1].is_plane
+    few = lifted(4, {"height": 0.75, "band": 0.005, "gaussians": 5, "span": [0.3, 0.2]})
+    assert not prompt_supports([few])[4].is_plane      # too few Gaussians to be a plane under it
+
+
 # --- the pieces -----------------------------------------------------------------------------
 
 
