@@ -14,7 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # (module prefix, layer): the longest matching prefix decides a module's layer.
 LAYERS = (
     ("kernels", 0),
-    ("phirie_jax.errors", 1), ("phirie_jax.native", 1), ("phirie_jax.types", 1), ("phirie_jax.geometry", 1), ("phirie_jax.layout", 1),
+    ("phirie_jax.errors", 1), ("phirie_jax.native", 1), ("phirie_jax.types", 1), ("phirie_jax.geometry", 1), ("phirie_jax.rotations", 1),
+    ("phirie_jax.layout", 1),
     ("phirie_jax.ranges", 1), ("phirie_jax.progress", 1), ("phirie_jax.compile_count", 1),
     ("phirie_jax.io", 2),
     ("phirie_jax.manifest", 3), ("phirie_jax.render", 3), ("phirie_jax.provenance", 3),
@@ -97,6 +98,91 @@ def test_the_check_sees_a_backward_edge(tmp_path, source, expected):
     assert any((layer(m) or 0) > layer("phirie_jax.observe") for m in targets) == expected
 
 
+def imports_of(path: Path) -> set[str]:
+    """The project modules a file imports (lazy imports included): ``from X import Y`` is an edge to
+    X.Y where that is a module, else to X (importing a submodule runs its package only to find it)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for alias in node.names:
+                sub = f"{node.module}.{alias.name}"
+                as_path = ROOT.joinpath(*sub.split("."))
+                is_module = as_path.with_suffix(".py").is_file() or (as_path / "__init__.py").is_file()
+                found.add(sub if is_module else node.module)
+    return {m for m in found if m.split(".")[0] in PACKAGE_ROOTS}
+
+
+def import_graph(paths: list[Path]) -> dict[str, set[str]]:
+    """module → the project modules it imports."""
+    return {module_name(p): imports_of(p) - {module_name(p)} for p in paths}
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every strongly connected component of more than one module (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.get(root, ()))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, edges = work[-1]
+            for nxt in edges:
+                if nxt not in graph:
+                    continue
+                if nxt not in index:
+                    index[nxt] = low[nxt] = len(index)
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(sorted(graph[nxt]))))
+                    break
+                if nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = []
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.append(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        circles.append(sorted(component))
+    return circles
+
+
+def test_no_import_circles():
+    """No two modules import each other, directly or round a longer loop, lazily or not: layers rule
+    out circles between layers, this rules them out inside one."""
+    circles = import_circles(import_graph(package_files()))
+    assert not circles, "import circles:\n" + "\n".join(" ↔ ".join(c) for c in circles)
+
+
+def test_the_check_sees_a_circle(tmp_path):
+    """Two modules that import each other and a three-module loop are found, each once; a chain is
+    not a circle; a lazy import of a submodule is an edge to that submodule."""
+    graph = {"a": {"b"}, "b": {"a", "c"}, "c": {"d"}, "d": {"e"}, "e": {"c"}, "f": {"a"}, "g": set()}
+    assert sorted(import_circles(graph)) == [["a", "b"], ["c", "d", "e"]]
+    assert import_circles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+    probe = tmp_path / "probe.py"
+    probe.write_text("import kernels.sh\ndef f():\n    from phirie_jax.construct.physics import warp_batch\n"
+                     "    from phirie_jax.construct.physics.config import DropTestConfig\n")
+    assert imports_of(probe) == {"kernels.sh", "phirie_jax.construct.physics.warp_batch",
+                                 "phirie_jax.construct.physics.config"}
+
+
 def test_importing_any_module_starts_no_jax_backend():
     """Importing a module runs no JAX computation: collision worker processes import the command's
     module, and on a GPU host a backend started there takes a CUDA context and memory in every
@@ -113,5 +199,6 @@ def test_importing_any_module_starts_no_jax_backend():
             "        pass  # an optional extra that is not installed\n"
             "from jax._src import xla_bridge\n"
             "sys.exit(1 if xla_bridge._backends else 0)\n")
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = subprocess.run([sys.executable, "-c", code], check=False, cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
     assert done.returncode == 0, f"a module import started a JAX backend\n{done.stderr[-2000:]}"

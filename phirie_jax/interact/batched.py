@@ -5,8 +5,16 @@ once and holds N copies of its state. By default the objects collide through one
 each (``collision="hull"``, ``phirie_jax.interact.mjx_model``: MJX compiles one function per
 distinct part pair); ``collision="parts"`` keeps the exported parts, as the single environment. ``step`` advances every world in one jitted,
 vmapped program; ``render`` draws worlds × cameras with a ``WorldRenderer``. The worlds start
-from the environment's reset state (its robot at home). ``backend="warp"`` steps the same
-worlds in MuJoCo Warp instead, with the exact model (``batched_warp``).
+from the environment's reset state (its robot at home).
+
+``backend="warp"`` (``WarpBatchedEnvironment``) steps the same worlds in MuJoCo Warp instead,
+with the same API, the physics in ``warp_worlds.WarpWorlds``: the environment's own MuJoCo model
+by default (``collision="parts"``: every CoACD part, the robot's link meshes and finger capsules;
+"hull" gives the MJX worlds' model), so a world is the single environment's MuJoCo C model in
+float32. Its poses reach the renderer without a host round trip: ``WarpWorlds.poses`` hands the
+bodies' positions and quaternions to JAX on the device (DLPack), split over the worlds' devices
+as the renderer's mesh splits them (one Warp model per GPU of the mesh; on the CPU one model, the
+poses then placed on the mesh), and the placements are computed there (``_placements``).
 
 ``WorldRenderer`` renders many worlds of one environment from the same cameras: the
 Gaussians that never move (the background) are projected, coloured and binned once per camera
@@ -37,8 +45,10 @@ from kernels.gaussians import Gaussians, Sim3, quat_to_rotmat, transform_bodies
 from kernels.raster import RasterConfig, RasterOutput
 from kernels.raster_merge import StaticView, rasterize_over_static, static_view
 from kernels.sharding import BatchMesh, pad_rows
-from phirie_jax.interact.environment import Environment, body_matrix, compose_scene, load_spec
+from phirie_jax.construct.physics.warp_batch import warp_devices
+from phirie_jax.interact.environment import Environment, compose_scene, load_spec
 from phirie_jax.interact.mjx_model import CollisionModel, hull_collision_spec, multi_part
+from phirie_jax.interact.warp_worlds import WarpWorlds
 from phirie_jax.render import (
     INITIAL_CAPACITY,
     INTERSECTIONS_GUESS,
@@ -47,6 +57,7 @@ from phirie_jax.render import (
     next_power_of_two,
     pad_gaussians,
 )
+from phirie_jax.rotations import pose_matrix
 from phirie_jax.types import Camera
 
 MAX_IMAGES = 256  # images per rasterization call and device: bounds the merged lists' memory
@@ -122,14 +133,14 @@ def inverse_t0_pose0(env: Environment, data) -> jax.Array:
         return jnp.zeros((0, 4, 4), jnp.float32)
     ids = [o.body_id for o in env.objects]
     pose0 = np.stack([o.pose0 for o in env.objects])
-    return jnp.asarray(np.linalg.inv(body_matrix(data.xpos[ids], data.xquat[ids])) @ pose0, jnp.float32)
+    return jnp.asarray(np.linalg.inv(pose_matrix(data.xpos[ids], data.xquat[ids])) @ pose0, jnp.float32)
 
 
 class BatchedEnvironment:
     """N copies of one ``Environment`` on MJX (module docstring), spread over ``devices``
     (``kernels.sharding.resolve_devices``: None, every device; a count; or jax devices).
 
-    ``backend="warp"`` gives the same API on MuJoCo Warp (``batched_warp.WarpBatchedEnvironment``:
+    ``backend="warp"`` gives the same API on MuJoCo Warp (``WarpBatchedEnvironment``:
     the exact model, ``collision`` "parts" by default); "mjx" (default) is the pure-JAX backend,
     ``collision`` "hull" by default."""
 
@@ -137,8 +148,6 @@ class BatchedEnvironment:
         if backend not in ("mjx", "warp"):
             raise ValueError(f"backend {backend!r} (expected 'mjx' or 'warp')")
         if backend == "warp" and cls is BatchedEnvironment:
-            from phirie_jax.interact.batched_warp import WarpBatchedEnvironment
-
             return super().__new__(WarpBatchedEnvironment)
         return super().__new__(cls)
 
@@ -235,6 +244,74 @@ class BatchedEnvironment:
         if self._renderer is None:
             self._renderer = WorldRenderer(self.env, devices=self.mesh.devices)
         return self._renderer.render(self.placements(), cameras, background, max_images, pixels)
+
+
+class WarpBatchedEnvironment(BatchedEnvironment):
+    """N copies of one ``Environment`` in MuJoCo Warp (module docstring). ``devices``: as the MJX
+    worlds' (``kernels.sharding.resolve_devices``); the worlds are padded to a multiple of them
+    with copies of world 0. ``contacts`` / ``constraints``: per-world capacities
+    (``warp_worlds.capacity`` by default)."""
+
+    def __init__(self, env: Environment, num_worlds: int, collision: CollisionModel | None = None, devices=None,
+                 *, backend: str = "warp", contacts: int | None = None, constraints: int | None = None):
+        self.env = env
+        self.num_worlds = int(num_worlds)
+        if self.num_worlds < 1:
+            raise ValueError(f"num_worlds {num_worlds} (expected at least 1)")
+        self.mesh = BatchMesh.over(devices)
+        self.padded_worlds = self.mesh.padded(self.num_worlds)
+        self.collision = collision or "parts"
+        self.mj_model = batched_model(env, self.collision)
+        data = initial_data(self.mj_model, env.robot)
+        self.worlds = WarpWorlds(self.mj_model, data, self.padded_worlds, warp_devices(self.mesh.devices),
+                                 contacts, constraints, grasp=env.robot is not None)
+        self.body_ids = jnp.asarray([o.body_id for o in env.objects], jnp.int32)
+        self.inverse_t0_pose0 = inverse_t0_pose0(env, data)
+        self._renderer = None
+
+    @property
+    def data(self):
+        """The worlds' ``mujoco_warp.Data``, one per Warp device (``WarpWorlds.parts``; the pad
+        worlds included). Per-world fields on the host: ``worlds.field(name)``."""
+        return tuple(p.data for p in self.worlds.parts)
+
+    @data.setter
+    def data(self, data) -> None:
+        raise AttributeError("the Warp worlds' state is set with set_state(qpos, qvel, ctrl) or reset()")
+
+    def _rows(self, name: str, value, width: int):
+        if tuple(value.shape) != (self.num_worlds, width):
+            raise ValueError(f"{name} of shape {tuple(value.shape)} (expected ({self.num_worlds}, {width}): "
+                             f"worlds × {name}'s size)")
+        return pad_rows(value if isinstance(value, jax.Array) else np.asarray(value, np.float32), self.padded_worlds)
+
+    def reset(self) -> None:
+        """Every world back to the initial state (``batched.initial_data``)."""
+        self.worlds.reset()
+
+    def set_state(self, qpos=None, qvel=None, ctrl=None) -> None:
+        """Per-world qpos (N, nq), qvel (N, nv) and/or ctrl (N, nu); poses and contacts follow."""
+        m = self.mj_model
+        self.worlds.set_state(*(None if v is None else self._rows(name, v, width) for name, v, width in
+                                (("qpos", qpos, m.nq), ("qvel", qvel, m.nv), ("ctrl", ctrl, m.nu))))
+
+    def set_velocities(self, qvel) -> None:
+        """Per-world generalized velocities (N, nv), e.g. a different throw in each world."""
+        self.set_state(qvel=qvel)
+
+    def step(self, steps: int = 1, ctrl=None) -> None:
+        """Advance every world by ``steps`` simulator steps, holding ``ctrl`` (N, nu) when given (a
+        JAX array on the worlds' GPU is read there)."""
+        self.worlds.step(int(steps), None if ctrl is None else self._rows("ctrl", ctrl, self.mj_model.nu))
+
+    def body_poses(self) -> jax.Array:
+        """(N, K, 4, 4) T_i(t) of every object's (and robot link's) body in every world."""
+        return _body_poses(*self.worlds.poses(self.mesh.rows), self.body_ids)[: self.num_worlds]
+
+    def placements(self) -> jax.Array:
+        """(N, K, 4, 4) S_i(t) of every object in every world, computed on the worlds' devices."""
+        return _placements(*self.worlds.poses(self.mesh.rows), self.body_ids,
+                           self.inverse_t0_pose0)[: self.num_worlds]
 
 
 def _source_spec(env: Environment):

@@ -39,6 +39,7 @@ from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.interact.robot.appearance import robot_gaussians
 from phirie_jax.io.transforms_json import read_transforms_json
 from phirie_jax.manifest import is_kept
+from phirie_jax.rotations import matrix_to_quat, pose_matrix
 from phirie_jax.types import Camera, GaussianSplatData
 
 PUSHER = "pusher"
@@ -57,19 +58,6 @@ class SceneObject:
     body_id: int
     pose0: np.ndarray         # (4, 4) S_i(0): canonical → scene
     gaussians: slice          # this object's rows in the environment's object Gaussians
-
-
-def body_matrix(xpos: np.ndarray, xquat: np.ndarray) -> np.ndarray:
-    """(…, 4, 4) rigid transforms from MuJoCo positions (…, 3) and wxyz quaternions (…, 4)."""
-    w, x, y, z = np.moveaxis(np.asarray(xquat, np.float64), -1, 0)
-    rot = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-    out = np.zeros(rot.shape[:-2] + (4, 4))
-    out[..., :3, :3], out[..., :3, 3], out[..., 3, 3] = rot, xpos, 1.0
-    return out
 
 
 @jax.jit
@@ -145,7 +133,7 @@ class Environment:
                                                    robot.config.shading, robot.config.seed):
                 if splats.sh_degree != background.sh_degree:
                     splats = _match_degree(splats, background.sh_degree)
-                pose0 = body_matrix(self.data.xpos[body_id], self.data.xquat[body_id])
+                pose0 = pose_matrix(self.data.xpos[body_id], self.data.xquat[body_id])
                 body.append(np.full(splats.num, len(self.objects), np.int32))
                 self.objects.append(SceneObject(None, model.body(body_id).name, body_id, pose0,
                                                 slice(start, start + splats.num)))
@@ -234,7 +222,7 @@ class Environment:
     def body_poses(self) -> np.ndarray:
         """(K, 4, 4) current world poses T_i(t) of the object bodies."""
         ids = [o.body_id for o in self.objects]
-        return body_matrix(self.data.xpos[ids], self.data.xquat[ids])
+        return pose_matrix(self.data.xpos[ids], self.data.xquat[ids])
 
     def placements(self) -> np.ndarray:
         """(K, 4, 4) S_i(t) = T_i(t) T_i(0)⁻¹ S_i(0): canonical frame → scene, now."""
@@ -351,19 +339,17 @@ class Environment:
         """Drop or throw: set a body's world pose (4×4 rigid) and/or velocity (world frame)."""
         import mujoco
 
-        from kernels.gaussians import rotmat_to_quat
-
         body = self.object(object_id).body_id
         joint = int(self.model.body_jntadr[body])
         qpos, qvel = int(self.model.jnt_qposadr[joint]), int(self.model.jnt_dofadr[joint])
         if pose is not None:
             pose = np.asarray(pose, np.float64)
             self.data.qpos[qpos:qpos + 3] = pose[:3, 3]
-            self.data.qpos[qpos + 3:qpos + 7] = np.asarray(rotmat_to_quat(jnp.asarray(pose[:3, :3])))
+            self.data.qpos[qpos + 3:qpos + 7] = matrix_to_quat(pose[:3, :3])
         if linear_velocity is not None:
             self.data.qvel[qvel:qvel + 3] = linear_velocity
         if angular_velocity is not None:  # free joints keep angular velocity in the body frame
-            rot = body_matrix(self.data.xpos[body], self.data.xquat[body])[:3, :3]
+            rot = pose_matrix(self.data.xpos[body], self.data.xquat[body])[:3, :3]
             self.data.qvel[qvel + 3:qvel + 6] = rot.T @ np.asarray(angular_velocity, np.float64)
         mujoco.mj_forward(self.model, self.data)
 

@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 
 from phirie_jax.construct.physics.collision import hull_part
+from phirie_jax.rotations import quat_to_matrix
 
 CollisionModel = Literal["parts", "hull"]
 HULL_SUFFIX = "_hull"
@@ -45,9 +46,7 @@ def body_frame_vertices(model, body_id: int) -> np.ndarray:
             continue
         mesh = model.geom_dataid[g]
         start, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, model.geom_quat[g])
-        out.append(model.mesh_vert[start:start + count] @ rot.reshape(3, 3).T + model.geom_pos[g])
+        out.append(model.mesh_vert[start:start + count] @ quat_to_matrix(model.geom_quat[g]).T + model.geom_pos[g])
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 

@@ -70,7 +70,7 @@ class Solid:
 
     @staticmethod
     def of(gaussians: GaussianSplatData, min_opacity: float) -> Solid:
-        from scipy.spatial.transform import Rotation
+        from phirie_jax.rotations import quat_to_matrix
 
         opacity = 1.0 / (1.0 + np.exp(-gaussians.opacity_logits.astype(np.float64)))
         rows = np.flatnonzero(opacity >= min_opacity)
@@ -78,7 +78,7 @@ class Solid:
         quats = gaussians.quats[rows].astype(np.float64)
         norms = np.linalg.norm(quats, axis=1, keepdims=True)
         quats = np.where(norms > 0, quats / np.maximum(norms, 1e-12), [1.0, 0.0, 0.0, 0.0])
-        rotations = Rotation.from_quat(quats, scalar_first=True).as_matrix()    # (M, 3, 3)
+        rotations = quat_to_matrix(quats)                                        # (M, 3, 3)
         axis = np.argmin(log_scales, axis=1)
         normals = rotations[np.arange(len(rows)), :, axis]
         ordered = np.sort(log_scales, axis=1)

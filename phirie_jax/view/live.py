@@ -22,7 +22,8 @@ import threading
 import mujoco
 import numpy as np
 
-from phirie_jax.interact.environment import Environment, body_matrix
+from phirie_jax.interact.environment import Environment
+from phirie_jax.rotations import pose_matrix
 from phirie_jax.view.config import ViewConfig
 from phirie_jax.view.scene import node_motion
 
@@ -130,7 +131,7 @@ class LiveScene:
 
     def _body_pose(self, object_id: int) -> np.ndarray:
         body = self.env.object(object_id).body_id
-        return body_matrix(self.env.data.xpos[body], self.env.data.xquat[body])
+        return pose_matrix(self.env.data.xpos[body], self.env.data.xquat[body])
 
     def drag_wrench(self, object_id: int) -> np.ndarray:
         """(6,) force and torque (about the centre of mass) the drag of ``object_id`` applies now."""

@@ -18,11 +18,11 @@ import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from kernels.gaussians import Gaussians
 from kernels.sh import sh_to_rgb
 from phirie_jax.geometry import split_sim3
+from phirie_jax.rotations import matrix_to_quat, quat_to_matrix
 from phirie_jax.types import Camera
 
 RIGID_TOL = 1e-6   # a node motion's scale may differ from 1 by float64 round-off only
@@ -76,7 +76,7 @@ def node_motion(placement: np.ndarray, placement0: np.ndarray) -> tuple[np.ndarr
     scale, rotation, translation = split_sim3(motion)
     if abs(scale - 1.0) > RIGID_TOL:
         raise ValueError(f"an object's motion since t = 0 scales by {scale} (expected a rigid motion)")
-    return Rotation.from_matrix(rotation).as_quat(scalar_first=True), translation
+    return matrix_to_quat(rotation), translation
 
 
 def placed_vertices(vertices: np.ndarray, placement: np.ndarray) -> np.ndarray:
@@ -96,7 +96,7 @@ class CameraView:
 
     def look_at(self, distance: float) -> np.ndarray:
         """(3,) the point ``distance`` metres ahead along the optical axis."""
-        rot = Rotation.from_quat(self.wxyz, scalar_first=True).as_matrix()
+        rot = quat_to_matrix(self.wxyz)
         return self.position + distance * rot[:, 2]
 
 
@@ -105,13 +105,13 @@ def camera_view(camera: Camera) -> CameraView:
     c2w = camera.camera_to_world
     fov = 2.0 * np.arctan(0.5 * camera.height / camera.K[1, 1])
     return CameraView(float(fov), camera.width / camera.height,
-                      Rotation.from_matrix(c2w[:3, :3]).as_quat(scalar_first=True), c2w[:3, 3].copy())
+                      matrix_to_quat(c2w[:3, :3]), c2w[:3, 3].copy())
 
 
 def screen_position(point: np.ndarray, view: CameraView) -> tuple[float, float] | None:
     """Where a world point (3,) appears in a view, in viser's screen coordinates (0–1, (0, 0)
     top-left, OpenCV axes), or None behind the camera."""
-    rot = Rotation.from_quat(view.wxyz, scalar_first=True).as_matrix()
+    rot = quat_to_matrix(view.wxyz)
     x, y, z = rot.T @ (np.asarray(point, np.float64) - view.position)
     if z <= 0:
         return None

@@ -43,7 +43,7 @@ def slider_env(tmp_path) -> Environment:
 
 
 def test_warp_worlds_step_like_mujoco_c_and_render_in_one_call(tmp_path):
-    from phirie_jax.interact.batched_warp import WarpBatchedEnvironment
+    from phirie_jax.interact.batched import WarpBatchedEnvironment
 
     env = toy_env(tmp_path)
     batch = BatchedEnvironment(env, num_worlds=3, backend="warp")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from phirie_jax.rotations import quat_to_matrix
 from phirie_jax.synthetic.capture import sample_surface, surface_gaussians
 from phirie_jax.types import GaussianSplatData
 
@@ -47,10 +48,8 @@ def geom_mesh(model, geom: int):
         mesh.apply_scale(size)
     else:
         return None
-    rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, model.geom_quat[geom])
     transform = np.eye(4)
-    transform[:3, :3], transform[:3, 3] = rot.reshape(3, 3), model.geom_pos[geom]
+    transform[:3, :3], transform[:3, 3] = quat_to_matrix(model.geom_quat[geom]), model.geom_pos[geom]
     mesh.apply_transform(transform)
     return mesh
 

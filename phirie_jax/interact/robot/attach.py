@@ -24,6 +24,7 @@ import dataclasses
 import numpy as np
 
 from phirie_jax.interact.robot.model import RobotDescription
+from phirie_jax.rotations import matrix_to_quat, quat_to_matrix
 
 PREFIX = "robot/"
 MOUNT = "robot_mount"
@@ -77,13 +78,11 @@ def footprint(robot_model, description: RobotDescription) -> tuple[np.ndarray, n
 def look_at_quat(position, target, up_hint) -> np.ndarray:
     """(4,) wxyz orientation of a MuJoCo camera at ``position`` looking at ``target`` (it looks
     along its −z with +y up; ``up_hint`` picks the roll)."""
-    from scipy.spatial.transform import Rotation
-
     back = np.asarray(position, float) - np.asarray(target, float)
     z = back / np.linalg.norm(back)
     x = np.cross(up_hint, z)
     x /= np.linalg.norm(x)
-    return Rotation.from_matrix(np.stack([x, np.cross(z, x), z], axis=1)).as_quat(scalar_first=True)
+    return matrix_to_quat(np.stack([x, np.cross(z, x), z], axis=1))
 
 
 def _align_globals(scene, robot) -> None:
@@ -102,14 +101,11 @@ def _wrist_pose(robot_model, description: RobotDescription) -> tuple[str, np.nda
         return body, np.asarray(position, float), look_at_quat(position, target, up_hint=np.asarray(position) * [1, 1, 0])
     site = robot_model.site(description.end_effector)
     body = robot_model.body(int(robot_model.site_bodyid[site.id])).name
-    rot = np.zeros(9)
-    import mujoco
-
-    mujoco.mju_quat2Mat(rot, robot_model.site_quat[site.id])
-    approach = rot.reshape(3, 3)[:, 2]
+    rot = quat_to_matrix(robot_model.site_quat[site.id])
+    approach = rot[:, 2]
     target = robot_model.site_pos[site.id]
     position = target - WRIST_BACK * approach
-    return body, position, look_at_quat(position, target, up_hint=rot.reshape(3, 3)[:, 0])
+    return body, position, look_at_quat(position, target, up_hint=rot[:, 0])
 
 
 def attach_robot(scene, robot, description: RobotDescription, base: Base, floor_height: float,

@@ -19,6 +19,8 @@ import dataclasses
 
 import numpy as np
 
+from phirie_jax.rotations import matrix_to_quat
+
 CLEARANCE = 0.003     # m: closer than this to another object counts as a hit
 CHECK_EVERY = 6       # ticks between checks (0.1 s at 60 Hz: the hand moves < 3 cm)
 
@@ -75,9 +77,7 @@ def first_hit(env, object_id: int, rows: np.ndarray, marks, every: int = CHECK_E
         carrying = lift <= tick
         if carrying:  # the object rides with the hand from the lift; it stays where it was released
             held = _site_pose(model, data, robot, rows[min(tick, release)]) @ relative
-            quat = np.zeros(4)
-            mujoco.mju_mat2Quat(quat, held[:3, :3].ravel())
-            data.qpos[free:free + 3], data.qpos[free + 3:free + 7] = held[:3, 3], quat
+            data.qpos[free:free + 3], data.qpos[free + 3:free + 7] = held[:3, 3], matrix_to_quat(held[:3, :3])
         data.qpos[robot.arm_qpos] = rows[tick]
         mujoco.mj_kinematics(model, data)
         moving = np.concatenate([movers, carried]) if carrying else movers

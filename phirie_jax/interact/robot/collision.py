@@ -32,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from phirie_jax.interact.robot.appearance import geom_mesh
+from phirie_jax.rotations import quat_to_matrix
 
 PAD_SUFFIX = "_pad"
 GRIP_BIT = 2              # the contact bit only the finger pads and the grasped object's parts share
@@ -66,9 +67,7 @@ def extreme_points(model, geom: int) -> np.ndarray:
     import mujoco
 
     kind, size = int(model.geom_type[geom]), model.geom_size[geom]
-    rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, model.geom_quat[geom])
-    rot = rot.reshape(3, 3)
+    rot = quat_to_matrix(model.geom_quat[geom])
     centre = model.geom_pos[geom]
     axes = np.vstack([np.eye(3), -np.eye(3)])
     if kind == mujoco.mjtGeom.mjGEOM_SPHERE:

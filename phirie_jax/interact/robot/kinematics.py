@@ -14,7 +14,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from phirie_jax.rotations import matrix_to_rotvec
 
 DAMPING = 0.03           # λ, in metres (the rotation rows are weighted into metres)
 ROTATION_WEIGHT = 0.2    # m per rad: how a rotation error weighs against a position error
@@ -85,7 +86,7 @@ class Kinematics:
         e = np.asarray(position, np.float64) - pos
         if rotation is None:
             return e
-        turn = Rotation.from_matrix(np.asarray(rotation, np.float64) @ rot.T).as_rotvec()
+        turn = matrix_to_rotvec(np.asarray(rotation, np.float64) @ rot.T)
         return np.concatenate([e, ROTATION_WEIGHT * turn])
 
     def solve(self, position, rotation=None, q0=None, iterations: int = ITERATIONS,

@@ -27,10 +27,10 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from phirie_jax.interact.robot.clearance import first_hit
 from phirie_jax.interact.robot.placement import object_centres, scene_supports
+from phirie_jax.rotations import matrix_to_rotvec, slerp_matrix
 
 SUCCESS_DISTANCE = 0.03   # m (the 3 cm)
 UPRIGHT_DEG = 10.0
@@ -157,7 +157,7 @@ def grasp_rotation(env, normal: np.ndarray) -> np.ndarray:
         n = sign * normal
         world_frame = np.stack([n, np.cross(down, n), down], axis=1)
         rot = world_frame @ site_frame.T
-        angle = np.linalg.norm(Rotation.from_matrix(rot @ current.T).as_rotvec())
+        angle = np.linalg.norm(matrix_to_rotvec(rot @ current.T))
         if best is None or angle < best[0]:
             best = (angle, rot)
     return best[1]
@@ -202,13 +202,12 @@ def plan_pick_place(env, object_id: int, goal, config: PickPlaceConfig = PickPla
     ]
     kin, q = robot.kinematics, robot.arm_q(env.data)
     rows, grips, marks, pos = [], [], [], start_pos
-    turn = Slerp([0.0, 1.0], Rotation.from_matrix([start_rot, rot]))
     for index, (name, seconds, end, gripper) in enumerate(segments):
         marks.append((name, len(rows)))
         ticks = max(1, int(round(seconds * CONTROL_HZ)))
         for s in _smooth(np.arange(1, ticks + 1) / ticks):
             target = pos + s * (end - pos)
-            target_rot = turn(s).as_matrix() if index == 0 else rot
+            target_rot = slerp_matrix(start_rot, rot, s) if index == 0 else rot
             result = kin.solve(target, target_rot, q0=q, iterations=60)
             if result.position_error > WAYPOINT_TOL:
                 where = f"object {object_id}" if index < 5 else f"the goal ({goal[0]:.3f}, {goal[1]:.3f}) of object {object_id}"
