@@ -77,12 +77,13 @@ def densified(data, copies: int, seed: int = 0):
     import dataclasses
 
     import numpy as np
-    from scipy.spatial.transform import Rotation
+
+    from phirie_jax.rotations import quat_to_matrix
 
     n = data.num
     quats = data.quats.astype(np.float64)
     quats /= np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
-    rot = Rotation.from_quat(quats[:, [1, 2, 3, 0]]).as_matrix()            # (N, 3, 3)
+    rot = quat_to_matrix(quats)                                             # (N, 3, 3)
     sigma = np.exp(data.log_scales.astype(np.float64))                      # (N, 3)
     rng = np.random.default_rng(seed)
     offsets = rng.normal(size=(copies, n, 3)) * 0.3 * sigma                # (K, N, 3) local
