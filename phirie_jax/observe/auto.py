@@ -18,7 +18,10 @@
    to it.
 4. Per-view masks: each pixel's first hit on the surface takes the label of the nearest
    sample (within two sample voxels, or twice the samples' spacing where that is wider):
-   projection of each cluster with occlusion.
+   projection of each cluster with occlusion. What stands above a support but became no
+   object (a floater, a speck, a bump, a cluster left out) is ``UNKNOWN`` there, not 0: a pixel
+   whose first hit is such an occluder says nothing about what is behind it, so it must not
+   carve an object's visual hull away (0 = the support or the scene around it: nothing there).
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ from phirie_jax.observe.support_fit import Support, find_supports
 from phirie_jax.observe.surface import pack_keys
 from phirie_jax.types import Camera
 
+UNKNOWN = 65535  # mask value of a pixel seen on something above a support that is no object; never an
+                 # instance (no segment, nothing lifted): consumers that ask "this instance?" see another
+                 # label, and the visual hull does not carve there (it carves on 0 only)
 HIDDEN_MARGIN = 0.5  # a view looks at a cluster unless the surface stops its centre's ray this fraction of
                      # the cluster's radius short of the cluster
 
@@ -61,6 +67,7 @@ class AutoSegmentation:
     rejected: list[dict]    # clusters left out, with the reason
     up: np.ndarray          # (3,)
     planes: list[dict] = dataclasses.field(default_factory=list)  # every support plane tried, and why not
+    unknown: np.ndarray | None = None  # (N,) bool: above a support and no object's (``UNKNOWN`` in masks)
 
 
 def observed_samples(raycaster: Raycaster, cameras: list[Camera], stride: int, voxel: float) -> Samples:
@@ -171,7 +178,9 @@ def segment(samples: Samples, up: np.ndarray, config: AutoMaskConfig, cameras: l
             clusters.append((members, info))
     objects = _seen_enough(samples, clusters, labels, config, cameras, raycaster, rejected)
     _reclaim_base(points, normals, labels, on_support, up, config)
-    return AutoSegmentation(points, labels, supports, objects, rejected, up, planes)
+    over = ~on_support & np.stack([(heights[:, s] >= config.plane_threshold) & support.covers(points)
+                                   for s, support in enumerate(supports)], 1).any(1)
+    return AutoSegmentation(points, labels, supports, objects, rejected, up, planes, over & (labels == 0))
 
 
 def _seen_enough(samples: Samples, clusters: list, labels: np.ndarray, config: AutoMaskConfig,
@@ -230,9 +239,11 @@ def label_radius(points: np.ndarray, sample_voxel: float) -> float:
 
 
 def auto_masks(raycaster: Raycaster, cameras: tuple[Camera, ...], seg: AutoSegmentation, sample_voxel: float):
-    """Per-view masks: each pixel's first hit takes the label of the nearest sample (``label_radius``)."""
+    """Per-view masks: each pixel's first hit takes the label of the nearest sample (``label_radius``);
+    ``UNKNOWN`` where that sample stands above a support and is no object's (``seg.unknown``)."""
     tree = cKDTree(seg.points)
     radius = label_radius(seg.points, sample_voxel)
+    sample_labels = seg.labels if seg.unknown is None else np.where(seg.unknown, UNKNOWN, seg.labels)
     for view, camera in enumerate(cameras):
         problem = camera_problem(camera)
         if problem:
@@ -243,7 +254,7 @@ def auto_masks(raycaster: Raycaster, cameras: tuple[Camera, ...], seg: AutoSegme
         hit = np.flatnonzero(hits.hit)
         dist, nearest = tree.query(hits.points[hit], distance_upper_bound=radius)
         found = np.isfinite(dist)
-        labels[hit[found]] = seg.labels[nearest[found]]
+        labels[hit[found]] = sample_labels[nearest[found]]
         labels = labels.reshape(camera.height, camera.width)
-        segments = {k: Segment(k, k) for k in map(int, np.unique(labels)) if k}
+        segments = {k: Segment(k, k) for k in map(int, np.unique(labels)) if k and k != UNKNOWN}
         yield ViewMasks(view, labels, segments, "auto")

@@ -163,3 +163,31 @@ def test_splatted_bumps_and_floaters_make_no_instance(tmp_path):
     assert all(np.linalg.norm(np.asarray(a["centre"][:2]) - c) > 0.05 for a in artefacts for c in centres.values())
     kept = [o for o in manifest["objects"] if o["status"] in ("accepted", "unverified")]
     assert all(o["id"] in centres for o in kept)   # no phantom became a body
+
+
+def test_what_stands_above_the_support_and_is_no_object_is_unknown_in_the_masks(rough_tabletop):
+    """Floaters and bumps are UNKNOWN in the masks (they may hide an object: no carving behind
+    them), the table is 0, every object keeps its label, and UNKNOWN is never a segment."""
+    from phirie_jax.observe.auto import UNKNOWN, auto_masks
+
+    scene, caster, cams = rough_tabletop
+    config = AutoMaskConfig()
+    samples = observed_samples(caster, cams, config.sample_stride, config.sample_voxel)
+    seg = segment(samples, np.array([0.0, 0.0, 1.0]), config, cams, caster)
+    assert seg.unknown is not None and not (seg.unknown & (seg.labels > 0)).any()
+    boxes = [o.world_mesh().bounds for o in scene.objects]
+    floater_hits, table_hits = [], []
+    for view in auto_masks(caster, tuple(cams), seg, config.sample_voxel):
+        present = set(np.unique(view.labels).tolist())
+        assert UNKNOWN not in view.segments and set(view.segments) == present - {0, UNKNOWN}
+        hits, _, _ = caster.cast_camera(cams[view.view])
+        points, labels = hits.points[hits.hit], view.labels.ravel()[hits.hit]
+        near_object = np.zeros(len(points), bool)
+        for lo, hi in boxes:
+            near_object |= ((points > lo - 0.03) & (points < hi + 0.03)).all(1)
+        floater_hits.append(labels[(points[:, 2] > TABLE_Z + 0.1) & ~near_object])
+        table_hits.append(labels[(np.abs(points[:, 2] - TABLE_Z) < 0.004) & ~near_object
+                                 & (np.abs(points[:, :2]) < 0.3).all(1)])
+    floater_hits, table_hits = np.concatenate(floater_hits), np.concatenate(table_hits)
+    assert len(floater_hits) > 100 and (floater_hits == UNKNOWN).mean() > 0.9
+    assert len(table_hits) > 1000 and (table_hits == 0).mean() > 0.9
