@@ -97,9 +97,11 @@ def test_solver_settings_reach_the_model_and_the_verdicts_do_not_depend_on_them(
     assert verdicts["newton"] == verdicts["cg"] == [c.expected_stable for c in agreement]
 
 
-@pytest.mark.parametrize("field", [{"solver": "pgs"}, {"jacobian": "auto"}])
-def test_unknown_solver_settings_are_refused(field):
-    with pytest.raises(ValueError, match="solver"):
+@pytest.mark.parametrize("field, line", [({"solver": "pgs"}, "DropTestConfig.solver pgs: expected one of newton, cg"),
+                                         ({"jacobian": "auto"}, "DropTestConfig.jacobian auto: expected one of dense, "
+                                                                "sparse")])
+def test_unknown_solver_settings_are_refused(field, line):
+    with pytest.raises(ValueError, match=f"^{line}$"):
         DropTestConfig(**field)
 
 
