@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from phirie_jax.construct.physics.collision import convex_part, hull_part
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
 from phirie_jax.construct.physics.droptest import (
+    DropResult,
     body_from_parts,
     build_model,
     drop_test,
@@ -19,6 +20,7 @@ from phirie_jax.construct.physics.droptest import (
     spawn_qpos,
     verdict,
 )
+from phirie_jax.construct.physics.ground import PLANE_SIZE
 from phirie_jax.geometry import split_sim3
 from tests.fixtures import droptest_cases as cases
 
@@ -120,6 +122,23 @@ def test_ghost_parts_change_nothing():
     np.testing.assert_allclose(finals[1], finals[0], atol=GHOST_TOL)
 
 
+def test_the_drop_model_and_the_warp_bank_share_plane_and_options():
+    """Both builders take the plane and the solver options from construct/physics/ground.py (the bank
+    model needs only MuJoCo to build)."""
+    from phirie_jax.construct.physics import warp_batch
+
+    config = DropTestConfig(solver="cg", jacobian="dense", solver_iterations=7)
+    cube = hull_part(trimesh.creation.box([0.1, 0.1, 0.1]).vertices)
+    model = build_model(body_from_parts((cube,), pose()), 1, config)
+    bank, _ = warp_batch.bank_model([model], config)
+    for m in (model, bank):
+        plane = m.geom("plane")
+        assert m.geom_type[plane.id] == mujoco.mjtGeom.mjGEOM_PLANE
+        np.testing.assert_array_equal(m.geom_size[plane.id], PLANE_SIZE)
+        assert (m.opt.timestep, m.opt.iterations, m.opt.solver, m.opt.jacobian) == (
+            config.timestep, 7, mujoco.mjtSolver.mjSOL_CG, mujoco.mjtJacobian.mjJAC_DENSE)
+
+
 def test_one_bad_candidate_does_not_stop_the_others():
     box = trimesh.creation.box([0.1, 0.1, 0.1])
     meshes = [(box.vertices, box.faces), (np.zeros((0, 3)), np.zeros((0, 3), int)),
@@ -127,7 +146,9 @@ def test_one_bad_candidate_does_not_stop_the_others():
     poses = [pose(), pose(), pose(), np.diag([1.0, 1.0, 2.0, 1.0])]
     results = drop_test_meshes(meshes, poses, config=PhysicsConfig(drop_test=DropTestConfig(backend="mujoco")))
     assert results[0].stable and results[0].error is None
-    assert all(r.stable is None and r.error for r in results[1:])
+    assert all(r == DropResult.not_run("mujoco", r.error) and r.error for r in results[1:])
+    assert all(v is None for v in (results[1].drift_m, results[1].final_height_m, results[1].settle_drift_m,
+                                   results[1].tilt_deg))
     assert "hull" in results[1].error and "flat" in results[2].error and "pose" in results[3].error
 
 
