@@ -155,12 +155,7 @@ class BatchedEnvironment:
                  *, backend: str = "mjx"):
         from mujoco import mjx
 
-        self.env = env
-        self.num_worlds = int(num_worlds)
-        if self.num_worlds < 1:
-            raise ValueError(f"num_worlds {num_worlds} (expected at least 1)")
-        self.mesh = BatchMesh.over(devices)
-        self.padded_worlds = self.mesh.padded(self.num_worlds)  # the worlds stepped: a multiple of the devices
+        self._set_worlds(env, num_worlds, devices)
         self.collision = collision or "hull"
         self.mj_model = batched_model(env, self.collision)
         self.model = self.mesh.put_replicated(mjx.put_model(self.mj_model))
@@ -172,6 +167,15 @@ class BatchedEnvironment:
         self.body_ids = jnp.asarray([o.body_id for o in env.objects], jnp.int32)
         self.inverse_t0_pose0 = inverse_t0_pose0(env, data)
         self._renderer: WorldRenderer | None = None
+
+    def _set_worlds(self, env: Environment, num_worlds: int, devices) -> None:
+        """The environment, the worlds' count and the mesh of devices they are spread over."""
+        self.env = env
+        self.num_worlds = int(num_worlds)
+        if self.num_worlds < 1:
+            raise ValueError(f"num_worlds {num_worlds} (expected at least 1)")
+        self.mesh = BatchMesh.over(devices)
+        self.padded_worlds = self.mesh.padded(self.num_worlds)  # the worlds stepped: a multiple of the devices
 
     @property
     def timestep(self) -> float:
@@ -254,12 +258,7 @@ class WarpBatchedEnvironment(BatchedEnvironment):
 
     def __init__(self, env: Environment, num_worlds: int, collision: CollisionModel | None = None, devices=None,
                  *, backend: str = "warp", contacts: int | None = None, constraints: int | None = None):
-        self.env = env
-        self.num_worlds = int(num_worlds)
-        if self.num_worlds < 1:
-            raise ValueError(f"num_worlds {num_worlds} (expected at least 1)")
-        self.mesh = BatchMesh.over(devices)
-        self.padded_worlds = self.mesh.padded(self.num_worlds)
+        self._set_worlds(env, num_worlds, devices)
         self.collision = collision or "parts"
         self.mj_model = batched_model(env, self.collision)
         data = initial_data(self.mj_model, env.robot)
