@@ -36,6 +36,7 @@ import sys
 import time
 from pathlib import Path
 
+from phirie_jax.manifest import ACCEPTED
 from phirie_jax.synthetic.scene import PRESETS
 
 # what a user's capture lacks, beside what discovery_eval leaves out: the truth and a declared frame
@@ -178,7 +179,7 @@ def main() -> None:
           "background_frames": len(((manifest.get("background") or {}).get("targets") or {}).get("frames") or []),
           "frame": {k: manifest.get("frame", {}).get(k) for k in ("up_source", "scale", "scale_source")},
           "instances": len(manifest.get("instances", [])),
-          "accepted": sum(o.get("status") == "accepted" for o in manifest.get("objects", [])),
+          "accepted": sum(o.get("status") == ACCEPTED for o in manifest.get("objects", [])),
           "output_tail": "".join(log[-15:])}, args.out)
 
 

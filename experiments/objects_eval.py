@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.construct.objects.config import ObjectsConfig  # noqa: E402
+from phirie_jax.manifest import ACCEPTED  # noqa: E402
 from phirie_jax.observe.config import ObserveConfig  # noqa: E402
 
 DEV_SEEDS = (100,)
@@ -295,7 +296,7 @@ def run_row(scene_dir: Path, obs_out: Path, config: ObjectsConfig, out: Path, me
     for obj in manifest["objects"]:
         row = {"id": obj["id"], "status": obj["status"], "candidate": obj.get("candidate"),
                "time_s": obj.get("time_s"), "failed_checks": obj.get("unresolved_checks")}
-        if obj["status"] == "accepted":
+        if obj["status"] == ACCEPTED:
             row.update(metrics(trimesh.load(out / obj["mesh"], force="mesh"), obj["pose"], scene_dir / gt[obj["id"]]["mesh"]))
         objects.append(row)
         for c in obj.get("candidates", []):
@@ -315,7 +316,7 @@ def summarize(rows: dict[str, list[dict]], total_objects: int) -> dict:
     table = {}
     for name, runs in rows.items():
         objs = [o for r in runs for o in r["objects"]]
-        kept = [o for o in objs if o["status"] == "accepted"]
+        kept = [o for o in objs if o["status"] == ACCEPTED]
         times = [o["time_s"] for o in objs if o["time_s"] is not None]
         mean = (lambda xs: round(float(np.mean(xs)), 4) if xs else None)  # noqa: E731
         gt_cands = [c for r in runs for c in r["candidates"] if c["kind"] == "gt"]

@@ -517,6 +517,7 @@ def _print_objects(manifest: dict) -> None:
 
     from phirie_jax.construct.objects.checks import failed as failed_checks
     from phirie_jax.info import STATUS_COLOURS, status_words
+    from phirie_jax.manifest import ACCEPTED
 
     table = Table(title="objects")
     for column in ("id", "status", "candidate", "failed checks", "drop test", "reason"):
@@ -532,7 +533,7 @@ def _print_objects(manifest: dict) -> None:
         table.add_row(str(obj["id"]), f"[{colour}]{escape(status_words(obj))}[/]",
                       str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—"),
                       ", ".join(failed) or "—", verdict,
-                      "" if obj.get("status") == "accepted" else str(obj.get("reason") or ""))
+                      "" if obj.get("status") == ACCEPTED else str(obj.get("reason") or ""))
     Console().print(table)
 
 

@@ -19,6 +19,7 @@ import json
 import math
 import time
 from collections.abc import Iterator
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -39,9 +40,18 @@ SCHEMA = "phirie/1"
 # again after it).
 STAGE_NAMES = ("frame", "observe", "objects", "physics", "background")
 PENDING, RUNNING, COMPLETE, FAILED, OUTDATED = "pending", "running", "complete", "failed", "outdated"
-# An object's status (``objects[].status``): every check passed; kept although a check failed (the
-# reason names the checks); not kept (the reason says why); its stage failed for it (recorded).
-ACCEPTED, UNVERIFIED, REJECTED, FAILED_OBJECT = "accepted", "unverified", "rejected", "failed"
+
+
+class ObjectStatus(StrEnum):
+    """An object's status (``objects[].status``; a ``str``, written to JSON as its value)."""
+
+    ACCEPTED = "accepted"       # every check passed
+    UNVERIFIED = "unverified"   # kept although a check failed (the reason names the checks)
+    REJECTED = "rejected"       # not kept (the reason says why)
+    FAILED = "failed"           # its stage failed for it (recorded)
+
+
+ACCEPTED, UNVERIFIED, REJECTED, FAILED_OBJECT = ObjectStatus
 KEPT = (ACCEPTED, UNVERIFIED)   # objects that are bodies of the scene
 
 
