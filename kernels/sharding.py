@@ -54,7 +54,7 @@ def resolve_devices(devices: int | Sequence[jax.Device] | None = None) -> tuple[
 
 
 GSPMD_REASON = ("JAX 0.11's Shardy partitioner crashed (SIGSEGV) compiling the MJX drop tests and "
-                "the batched worlds for two H200s; GSPMD compiles and runs them")
+                "the batched worlds for two H200s; GSPMD compiled and ran the drop tests")
 
 
 def use_gspmd_on_gpus(devices: Sequence[jax.Device]) -> bool:
