@@ -168,7 +168,8 @@ def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: 
     builds in this one (unprotected: for debugging). ``build``: what runs per entry (a top-level
     function; default ``_build_outcome``). Workers never outlive this process (``_worker_pool``).
     """
-    return CollisionJob(entries, categories, out_dir, config, build).outcomes()
+    with CollisionJob(entries, categories, out_dir, config, build) as job:   # Ctrl-C at any point: terminated
+        return job.outcomes()
 
 
 def _advanced(outcome: dict, advance) -> dict:
@@ -229,9 +230,13 @@ class CollisionJob:
             workers = _worker_count(len(self._args), config)
             self._threads = worker_threads(workers, config)
             self._pool = _worker_pool(workers, self._threads)
-            self._futures = [self._pool.submit(self._build, *a) for a in self._args]
-            for future in self._futures:
-                future.add_done_callback(self._note_finish)
+            try:
+                self._futures = [self._pool.submit(self._build, *a) for a in self._args]
+                for future in self._futures:
+                    future.add_done_callback(self._note_finish)
+            except BaseException:   # Ctrl-C while submitting: no worker is left building
+                self.cancel()
+                raise
         self.seconds = 0.0   # the collision's own wall time, once ``outcomes()`` returned
 
     def _note_finish(self, _future) -> None:
