@@ -15,10 +15,10 @@ demo: setup
 	$(PY) -m phirie_jax.cli demo --out out/demo
 
 test: setup test-packages
-	$(PY) -m pytest -n auto -q
+	$(PY) -m pytest -n auto --dist loadfile -q
 
 test-all: setup test-packages
-	$(PY) -m pytest -n auto -q -m ''
+	$(PY) -m pytest -n auto --dist loadfile -q -m ''
 
 setup: system-packages $(STAMP)
 
