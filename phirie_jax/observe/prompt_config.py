@@ -51,8 +51,6 @@ class PromptConfig:
         plane_threshold: background plane inlier distance, as a fraction of the seed's depth.
         min_plane_fraction: a background plane holds at least this fraction of the ring's Gaussians.
         max_planes: background planes fitted to the ring (walls, the support, furniture).
-        background_band: Gaussians less than this × the inlier distance in front of a background
-            plane are the background's.
         support_tilt_deg: the support's Gaussians are flat and face up within this angle.
         support_bin: height bin of the support's histogram (metres).
         min_support_gaussians: a support needs this many flat, up-facing Gaussians under the object.
@@ -87,7 +85,6 @@ class PromptConfig:
     plane_threshold: float = 0.01
     min_plane_fraction: float = 0.15
     max_planes: int = 3
-    background_band: float = 1.0
     support_tilt_deg: float = 30.0
     support_bin: float = 0.005
     min_support_gaussians: int = 12
@@ -108,7 +105,7 @@ class PromptConfig:
             "link_factor": POSITIVE, "link_neighbours": AT_LEAST_ONE, "extent_factor": NON_NEGATIVE,
             "max_link_factor": Range(1), "attach_factor": POSITIVE,
             "box_margin": NON_NEGATIVE, "reach": POSITIVE, "ring": POSITIVE, "plane_threshold": POSITIVE,
-            "min_plane_fraction": POSITIVE_FRACTION, "max_planes": NON_NEGATIVE, "background_band": NON_NEGATIVE, "support_tilt_deg": ANGLE_DEG,
+            "min_plane_fraction": POSITIVE_FRACTION, "max_planes": NON_NEGATIVE, "support_tilt_deg": ANGLE_DEG,
             "support_bin": POSITIVE, "min_support_gaussians": AT_LEAST_ONE, "click_reach": POSITIVE,
             "flood_jump": POSITIVE, "max_flood_fraction": POSITIVE_FRACTION, "open_px": NON_NEGATIVE,
             "close_px": NON_NEGATIVE, "min_component": FRACTION, "support_band_min": NON_NEGATIVE,

@@ -269,38 +269,24 @@ def outer_pixels(shape: tuple[int, int], box: np.ndarray, width: float) -> np.nd
     return _inside(shape, _grown(box, width))
 
 
-def pixel_points(camera: Camera, depth: np.ndarray, alpha: np.ndarray, pixels: np.ndarray, min_alpha: float
-                 ) -> np.ndarray:
-    """(P, 3) world points of the ``pixels`` (H, W) bool at their rendered depth (alpha ≥ ``min_alpha``)."""
-    rows, cols = np.nonzero(pixels & (alpha >= min_alpha) & (depth > 0))
-    rays = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], 1) @ np.linalg.inv(camera.K).T   # z = 1
-    in_camera = rays * depth[rows, cols][:, None]
-    c2w = camera.camera_to_world
-    return in_camera @ c2w[:3, :3].T + c2w[:3, 3]
-
-
 def background_planes(solid: Solid, ring: np.ndarray, camera: Camera, seed_points: np.ndarray, seed_depth: float,
                       config: PromptConfig) -> tuple[np.ndarray, list[dict]]:
     """(M,) bool: ``solid`` Gaussians behind (or on) a plane of the background seen in the ``ring``
-    ((R, 3) world points: what the ring's pixels show, at their rendered depth), and the planes'
-    records."""
+    (indices of ``solid``), and the planes' records."""
     behind = np.zeros(len(solid.points), bool)
     rng = np.random.default_rng(0)
     if len(ring) > MAX_RING:
-        ring = ring[np.sort(rng.choice(len(ring), MAX_RING, replace=False))]
+        ring = np.sort(rng.choice(ring, MAX_RING, replace=False))
     threshold = config.plane_threshold * seed_depth
     records = []
-    for normal, offset, count in fit_planes(ring, threshold, config, rng):
+    for normal, offset, count in fit_planes(solid.points[ring], threshold, config, rng):
         if normal @ camera.center < offset:      # orient towards the camera: in front is positive
             normal, offset = -normal, -offset
         front = np.mean(seed_points @ normal - offset > threshold)
         record = {"normal": normal.round(4).tolist(), "offset": round(offset, 5), "gaussians": count,
                   "seed_in_front": round(float(front), 3)}
-        if abs(normal[2]) >= np.cos(np.radians(config.support_tilt_deg)):
-            record["used"] = False     # level: a support, which the support's own rule limits (a soft
-            record["why"] = "level: the support rule holds"   # one is not a plane: a tilted fit cuts the object)
-        elif front >= SEED_IN_FRONT:
-            behind |= solid.points @ normal - offset <= config.background_band * threshold
+        if front >= SEED_IN_FRONT:
+            behind |= solid.points @ normal - offset <= 2 * threshold
             record["used"] = True
         else:
             record["used"] = False     # the object stands in it: not background
@@ -439,7 +425,7 @@ def lift_prompt(number: int, prompt: Prompt, cameras: Sequence[Camera], gaussian
     allowed &= (row >= 0) & (col + 0.5 >= lo[0]) & (col + 0.5 <= hi[0]) & (row + 0.5 >= lo[1]) & (row + 0.5 <= hi[1])
     if floor is not None:
         allowed &= solid.points[:, 2] > floor
-    ring = pixel_points(camera, depth, alpha, ring_pixels(depth.shape, box, config.ring), config.min_alpha)
+    ring = seen_by(solid, camera, depth, ring_pixels(depth.shape, box, config.ring), config)
     behind, planes = background_planes(solid, ring, camera, seed_points, seed_depth, config)
     allowed &= ~behind
     record["background_planes"] = planes
