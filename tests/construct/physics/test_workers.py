@@ -25,7 +25,9 @@ START_WITHIN_S = 60.0   # the parent imports the physics stage and spawns a work
 SLEEP_S = 120.0         # the build's sleep: a worker still there after GONE_WITHIN_S was orphaned
 
 PARENT = """
+import signal
 import sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a terminal (a test runner's worker may ignore it)
 from pathlib import Path
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.construct.physics.stage import build_objects
