@@ -31,6 +31,7 @@ def fitted_dir(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow   # heavy: a 300-step fit (the training loop itself: tests/capture/test_train.py)
 def test_fitted_scene_reproduces_its_training_images(fitted_dir):
     record = json.loads((fitted_dir / "gt" / "fit.json").read_text())
     assert record["steps"] == TEST_STEPS
@@ -39,6 +40,7 @@ def test_fitted_scene_reproduces_its_training_images(fitted_dir):
     assert record["loss_last"] < 0.5 * record["loss_first"]
 
 
+@pytest.mark.slow   # heavy: a 300-step fit (the training loop itself: tests/capture/test_train.py)
 def test_fitted_folder_records_the_fit_and_keeps_the_ideal_set(fitted_dir):
     fitted = read_gaussian_ply(fitted_dir / "point_cloud.ply")
     record = json.loads((fitted_dir / "gt" / "fit.json").read_text())
@@ -56,6 +58,7 @@ def _flatness(data: GaussianSplatData) -> np.ndarray:
     return scales.min(axis=1) / scales.max(axis=1)
 
 
+@pytest.mark.slow   # heavy: a 300-step fit (the training loop itself: tests/capture/test_train.py)
 def test_fitted_gaussians_are_not_the_ideal_ones(fitted_dir):
     fitted = read_gaussian_ply(fitted_dir / "point_cloud.ply")
     ideal = read_gaussian_ply(fitted_dir / "gt" / "ideal" / "point_cloud.ply")
