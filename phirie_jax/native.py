@@ -16,7 +16,12 @@ function's module (measured in ``tests/observe/test_native.py``).
 
 A child never outlives its parent: ``die_with_parent`` asks Linux to kill it when the parent
 ends, however it ends (``kill -9`` included), so minutes of native work do not go on orphaned.
-The CoACD worker pool (``construct.physics.stage``) starts its workers with it too.
+
+``IsolatedPool`` runs many such calls, at most ``workers`` at once, each in its own fresh
+interpreter (the CoACD decomposition of each object, ``construct.physics.stage``): one
+crashing call is that call's ``NativeLibraryError`` and the others go on; ``terminate`` (and
+leaving its ``with`` block on an exception: Ctrl-C) kills the running children at once and
+drops the queued calls; each child's OpenMP libraries start ``threads`` threads.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import subprocess
 import sys
 import threading
 import traceback
+from concurrent.futures import Future, ThreadPoolExecutor
 
 from phirie_jax.errors import NativeLibraryError
 
@@ -87,13 +93,44 @@ def signal_name(returncode: int) -> str | None:
         return None
 
 
-def run_isolated(library: str, fn, *args, description: str | None = None, **kwargs):
+class _Children:
+    """The children an ``IsolatedPool`` has running; once closed, a child that starts is killed."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._running: set[subprocess.Popen] = set()
+        self.closed = False
+
+    def add(self, child: subprocess.Popen) -> None:
+        with self._lock:
+            self._running.add(child)
+            if self.closed:
+                child.kill()
+
+    def discard(self, child: subprocess.Popen) -> None:
+        with self._lock:
+            self._running.discard(child)
+
+    def pids(self) -> list[int]:
+        with self._lock:
+            return [child.pid for child in self._running]
+
+    def kill_all(self) -> None:
+        with self._lock:
+            self.closed = True
+            for child in self._running:
+                child.kill()
+
+
+def run_isolated(library: str, fn, *args, description: str | None = None, env: dict[str, str] | None = None,
+                 children: _Children | None = None, **kwargs):
     """``fn(*args, **kwargs)`` in a child process; its result, or the exception it raised.
 
     library: the native library ``fn`` calls (named in the error); description: what was
-    being done ("VoxelBlockGrid fusion"), also in the error. ``fn`` must be a top-level
-    function of an importable module. Raises ``NativeLibraryError`` when the child dies
-    (a signal, or an exit without an answer), e.g.
+    being done ("VoxelBlockGrid fusion"), also in the error; env: variables set in the child
+    besides this process's; children: where an ``IsolatedPool`` keeps the child while it runs.
+    ``fn`` must be a top-level function of an importable module. Raises ``NativeLibraryError``
+    when the child dies (a signal, or an exit without an answer), e.g.
     "Open3D VoxelBlockGrid fusion died with signal 11 (SIGSEGV)"; an exception that cannot
     travel back comes as a RuntimeError with the child's traceback.
     """
@@ -102,9 +139,21 @@ def run_isolated(library: str, fn, *args, description: str | None = None, **kwar
     read_fd, write_fd = os.pipe()
     try:
         child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd), str(os.getpid())],
-                                 stdin=subprocess.PIPE, pass_fds=(write_fd,))
+                                 stdin=subprocess.PIPE, pass_fds=(write_fd,),
+                                 env=None if env is None else {**os.environ, **env})
     finally:
         os.close(write_fd)  # the child holds the only writing end: its death reads as EOF here
+    if children is None:
+        return _answer(child, read_fd, payload, library, what)
+    children.add(child)
+    try:
+        return _answer(child, read_fd, payload, library, what)
+    finally:
+        children.discard(child)
+
+
+def _answer(child: subprocess.Popen, read_fd: int, payload: bytes, library: str, what: str):
+    """Send the call to ``child``, wait for it, and return its result (``run_isolated``)."""
     chunks: list[bytes] = []
     reader = threading.Thread(target=lambda: chunks.append(_read_all(read_fd)), daemon=True)
     reader.start()  # drain the answer while the call is still being written (both may be large)
@@ -136,3 +185,45 @@ def run_isolated(library: str, fn, *args, description: str | None = None, **kwar
 def _read_all(fd: int) -> bytes:
     with os.fdopen(fd, "rb") as f:
         return f.read()
+
+
+class IsolatedPool:
+    """``run_isolated`` calls of one native ``library``, at most ``workers`` at a time, each in a
+    fresh interpreter whose OpenMP libraries start ``threads`` threads (0: their own default).
+
+    ``submit`` returns a ``Future`` of the call's result (or its exception: a crash is a
+    ``NativeLibraryError``). Used as a context manager, it waits for the calls on a normal exit
+    and ``terminate``s them when the block raises (Ctrl-C's KeyboardInterrupt above all)."""
+
+    def __init__(self, library: str, workers: int, threads: int = 0):
+        self.library = library
+        self.env = {"OMP_NUM_THREADS": str(threads)} if threads > 0 else None
+        self._children = _Children()
+        self._threads = ThreadPoolExecutor(max(1, workers), thread_name_prefix=f"{library} call")
+
+    def submit(self, fn, *args, description: str | None = None) -> Future:
+        return self._threads.submit(run_isolated, self.library, fn, *args, description=description,
+                                    env=self.env, children=self._children)
+
+    def running_pids(self) -> list[int]:
+        """Process ids of the children running a call now."""
+        return self._children.pids()
+
+    def terminate(self) -> None:
+        """Kill the running children now and drop the queued calls (their futures are cancelled;
+        a running one's raises ``NativeLibraryError`` with SIGKILL)."""
+        self._threads.shutdown(wait=False, cancel_futures=True)
+        self._children.kill_all()
+
+    def shutdown(self) -> None:
+        """Wait for every submitted call, then release the threads."""
+        self._threads.shutdown(wait=True)
+
+    def __enter__(self) -> IsolatedPool:
+        return self
+
+    def __exit__(self, kind, err, trace) -> None:
+        if kind is None:
+            self.shutdown()
+        else:
+            self.terminate()

@@ -19,7 +19,6 @@ config; timings ``physics`` and ``physics.<step>``.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 import traceback
@@ -43,6 +42,7 @@ from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
 from phirie_jax.io.mesh import load_trimesh, read_mesh
 from phirie_jax.manifest import ACCEPTED, UNVERIFIED, Manifest, is_kept, to_dict
+from phirie_jax.native import IsolatedPool
 from phirie_jax.progress import task
 
 SETTLE_SECONDS = 2.0
@@ -160,13 +160,14 @@ def _build_outcome(entry: dict, category: str | None, out_dir: Path, config: Phy
 
 def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig,
                   build=None) -> list[dict]:
-    """``_build_outcome`` of every entry, in ``config.workers`` processes (CoACD is single-threaded).
+    """``_build_outcome`` of every entry, at most ``config.workers`` at once, each in its own
+    fresh interpreter (``native.IsolatedPool``; CoACD is single-threaded).
 
-    A worker that dies (CoACD crashing in native code) takes only its object down: the objects
-    it left unfinished are retried alone, and the one that kills its process again is recorded.
-    A single object, or a single core, still builds in a child process; only ``workers=1``
-    builds in this one (unprotected: for debugging). ``build``: what runs per entry (a top-level
-    function; default ``_build_outcome``). Workers never outlive this process (``_worker_pool``).
+    A build whose process dies (CoACD crashing in native code) is that object's recorded
+    failure; the others go on. A single object, or a single core, still builds in a child
+    process; only ``workers=1`` builds in this one (unprotected: for debugging). ``build``: what
+    runs per entry (a top-level function; default ``_build_outcome``). The children never
+    outlive this process (``native.die_with_parent``), and a Ctrl-C kills them at once.
     """
     with CollisionJob(entries, categories, out_dir, config, build) as job:   # Ctrl-C at any point: terminated
         return job.outcomes()
@@ -183,31 +184,21 @@ def _worker_count(objects: int, config: PhysicsConfig) -> int:
     return max(1, min(objects, config.workers or os.cpu_count() or 1))
 
 
-def _gathered(futures: list, advance) -> list[dict | None]:
-    """Each future's outcome in order; None where its worker died."""
-    from concurrent.futures.process import BrokenProcessPool
+CRASHED = "the collision process died (CoACD crashed on this mesh: {})"
 
-    outcomes: list[dict | None] = [None] * len(futures)
-    for k, future in enumerate(futures):
+
+def _gathered(futures: list, advance) -> list[dict]:
+    """Each future's outcome in order; a build whose process died (CoACD crashing in native
+    code) is that object's recorded failure."""
+    from phirie_jax.errors import NativeLibraryError
+
+    outcomes = []
+    for future in futures:
         try:
-            outcomes[k] = _advanced(future.result(), advance)
-        except BrokenProcessPool:
-            pass
-    return outcomes
-
-
-def _retried_alone(build, args: list[tuple], outcomes: list[dict | None], advance, threads: int = 0) -> list[dict]:
-    """The objects whose worker died (None in ``outcomes``) built again, each alone."""
-    from concurrent.futures.process import BrokenProcessPool
-
-    for k, outcome in enumerate(outcomes):
-        if outcome is None:
-            with _worker_pool(1, threads) as alone, _terminated_on_interrupt(alone):
-                try:
-                    outcomes[k] = alone.submit(build, *args[k]).result()
-                except BrokenProcessPool:
-                    outcomes[k] = {"reason": "the collision process died (CoACD crashed on this mesh)"}
-            advance()
+            outcome = future.result()
+        except NativeLibraryError as err:
+            outcome = {"reason": CRASHED.format(err.signal or "no result")}
+        outcomes.append(_advanced(outcome, advance))
     return outcomes
 
 
@@ -229,9 +220,10 @@ class CollisionJob:
         if config.workers != 1 and self._args:
             workers = _worker_count(len(self._args), config)
             self._threads = worker_threads(workers, config)
-            self._pool = _worker_pool(workers, self._threads)
+            self._pool = IsolatedPool("CoACD", workers, self._threads)
             try:
-                self._futures = [self._pool.submit(self._build, *a) for a in self._args]
+                self._futures = [self._pool.submit(self._build, *a, description=f"collision of object {a[0]['id']}")
+                                 for a in self._args]
                 for future in self._futures:
                     future.add_done_callback(self._note_finish)
             except BaseException:   # Ctrl-C while submitting: no worker is left building
@@ -252,7 +244,7 @@ class CollisionJob:
     def cancel(self) -> None:
         """Terminate the workers now (what they were building is dropped)."""
         if self._pool is not None:
-            _terminate(self._pool)
+            self._pool.terminate()
             self._pool = None
 
     def outcomes(self) -> list[dict]:
@@ -262,13 +254,9 @@ class CollisionJob:
                 outcomes = [_advanced(self._build(*a), advance) for a in self._args]
                 self._finished = time.perf_counter()
             else:
-                with _terminated_on_interrupt(self._pool):
+                with self._pool:   # an exception here (Ctrl-C) terminates the workers at once
                     outcomes = _gathered(self._futures, advance)
-                self._pool.shutdown()
                 self._pool = None
-                if None in outcomes:  # a worker died: its objects are built again, each alone
-                    outcomes = _retried_alone(self._build, self._args, outcomes, advance, self._threads)
-                    self._finished = time.perf_counter()
         self.seconds = self._finished - self._start
         return outcomes
 
@@ -280,32 +268,6 @@ def start_collision(out_dir: str | Path, config: PhysicsConfig | None = None) ->
     objects = manifest.require("objects", "the object-construction stage")
     accepted = [e for e in objects if is_kept(e)]
     return CollisionJob(accepted, manifest.categories(), out_dir, config or PhysicsConfig())
-
-
-def _worker_pool(workers: int, threads: int = 0):
-    """A pool of ``workers`` spawned processes, each killed by the kernel when this process ends
-    (``native.die_with_parent``: a ``kill -9`` of the run leaves no CoACD running on its own),
-    whose OpenMP libraries start ``threads`` threads each (0: their own default, one per core)."""
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
-    spawn = multiprocessing.get_context("spawn")  # never fork a process that holds JAX threads
-    return ProcessPoolExecutor(workers, mp_context=spawn, initializer=_start_worker, initargs=(os.getpid(), threads))
-
-
-def _start_worker(parent: int, threads: int) -> None:
-    """A collision worker: it dies with ``parent``; CoACD (and Open3D), imported only when its
-    first object is built, read ``OMP_NUM_THREADS`` then. CoACD runs parts of its search in an
-    OpenMP team of one thread per core by default: 16 workers on 16 cores made 256 threads
-    that waited for each other (``CoacdConfig.threads``)."""
-    import os
-
-    from phirie_jax.native import die_with_parent
-
-    die_with_parent(parent)
-    if threads > 0:
-        os.environ["OMP_NUM_THREADS"] = str(threads)
 
 
 def pool_record(objects: int, config: PhysicsConfig) -> dict:
@@ -323,30 +285,6 @@ def worker_threads(workers: int, config: PhysicsConfig) -> int:
     import os
 
     return config.coacd.threads or max(1, (os.cpu_count() or 1) // max(1, workers))
-
-
-@contextlib.contextmanager
-def _terminated_on_interrupt(pool):
-    """On any exception in the block (Ctrl-C's KeyboardInterrupt above all) the pool's workers
-    are terminated at once: leaving the pool's ``with`` would otherwise wait for every mesh they
-    are decomposing. A signal that ends this process outright (SIGTERM, SIGKILL) takes them with
-    it through ``die_with_parent``."""
-    try:
-        yield
-    except BaseException:
-        _terminate(pool)
-        raise
-
-
-def _terminate(pool) -> None:
-    """The pool's workers terminated at once, its queued work dropped."""
-    terminate = getattr(pool, "terminate_workers", None)  # Python ≥ 3.14
-    if terminate is not None:
-        terminate()
-    else:
-        for process in list((pool._processes or {}).values()):  # what terminate_workers does
-            process.terminate()
-        pool.shutdown(wait=False, cancel_futures=True)
 
 
 # --- step 2: supports, scene.xml and its free settle -----------------------------------

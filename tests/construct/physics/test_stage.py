@@ -263,7 +263,7 @@ def test_a_build_that_kills_its_process_is_recorded_and_the_rest_go_on(tmp_path,
 
     outcomes = build_objects([{"id": i} for i in ids], {}, tmp_path, PhysicsConfig(workers=0), build=crashing_build)
     by_id = dict(zip(ids, outcomes))
-    assert by_id[2] == {"reason": "the collision process died (CoACD crashed on this mesh)"}
+    assert by_id[2] == {"reason": "the collision process died (CoACD crashed on this mesh: SIGSEGV)"}
     assert all(by_id[i] == {"update": {"built": i}} for i in ids if i != 2)
 
 
@@ -288,8 +288,7 @@ def test_a_collision_started_ahead_is_terminated_when_the_work_beside_it_fails(t
     out, _ = constructed_folder(tmp_path / "out", seed=0)
     job = start_collision(out, PhysicsConfig(workers=2))
     with pytest.raises(RuntimeError, match="beside"), job:
-        workers = [process.pid for process in job._pool._processes.values()]
+        assert wait_for(lambda: job._pool.running_pids(), 60.0), "no collision worker started"
+        workers = job._pool.running_pids()
         raise RuntimeError("the work beside the collision failed")
-    # by process id: the pool's own thread may reap a worker first, and then Process.is_alive()
-    # of this thread can no longer tell that it ended
     assert workers and wait_for(lambda: not any(running(pid) for pid in workers), 5.0)
