@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -27,21 +26,9 @@ import jax
 import numpy as np
 
 from experiments.report import emit
+from experiments.timing import timed
 from phirie_jax.interact.batched import BatchedEnvironment  # noqa: E402
 from phirie_jax.interact.environment import Environment  # noqa: E402
-
-
-def timed(fn, repeats: int) -> tuple[float, float]:
-    """(first call s, median of ``repeats`` later calls s); results are blocked on."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times)
 
 
 def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int) -> dict:

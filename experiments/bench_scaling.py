@@ -45,7 +45,6 @@ import contextlib
 import json
 import os
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -54,24 +53,12 @@ import jax
 import numpy as np
 
 from experiments.report import emit
+from experiments.timing import timed
 from kernels.sharding import BatchMesh
 
 
 def _say(message: str) -> None:
     print(f"bench_scaling: {message}", file=sys.stderr, flush=True)
-
-
-def _timed(fn, repeats: int) -> tuple[float, float]:
-    """(first call s, median of ``repeats`` later calls s); results are blocked on."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times) if times else first
 
 
 def ensure_scene(scene: Path) -> float | None:
@@ -105,8 +92,8 @@ def bench_worlds(env, worlds: int, cameras: list[int], steps: int, repeats: int,
     batch = BatchedEnvironment(env, worlds, devices=devices)
     batch.set_velocities(throws)
     put_s = time.perf_counter() - t0
-    step_first, step_s = _timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
-    render_first, render_s = _timed(lambda: batch.render(cameras, max_images=max_images).rgb, repeats)
+    step_first, step_s = timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
+    render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb, repeats)
     images = batch.render(cameras, max_images=max_images)
     state = {"qpos": batch.data.qpos, "qvel": batch.data.qvel}
     frames = worlds * len(cameras)
@@ -218,7 +205,7 @@ def bench_mjx_drops(models, qpos0, config, repeats: int, devices) -> tuple[dict,
     t0 = time.perf_counter()
     compiled = mjx_batch.lower(template, params, qpos0, config, mesh).compile()
     compile_s = time.perf_counter() - t0
-    first, run_s = _timed(lambda: compiled(*args), repeats)
+    first, run_s = timed(lambda: compiled(*args), repeats)
     settled, final = (np.asarray(o, np.float64)[: len(models)] for o in compiled(*args))
     steps = len(models) * (config.settle_steps + config.free_steps)
     return ({"devices": mesh.size, "batch": args[-1].shape[0], "prep_s": round(prep_s, 2),
@@ -251,7 +238,7 @@ def bench_warp_drops(models, qpos0, config, repeats: int, devices: list[str]) ->
     t0 = time.perf_counter()
     parts = warp_batch.prepare_split(models, qpos0, config, devices=devices)
     prep_s = time.perf_counter() - t0
-    first, run_s = _timed(lambda: warp_batch.simulate_all(parts).final, repeats)
+    first, run_s = timed(lambda: warp_batch.simulate_all(parts).final, repeats)
     out = warp_batch.simulate_all(parts)
     steps = len(models) * (config.settle_steps + config.free_steps)
     return ({"devices": devices, "prep_s": round(prep_s, 2), "first_run_s": round(first, 4),
@@ -273,6 +260,19 @@ def compare_drops(models, qpos0, config, one: tuple, many: tuple, backend: str) 
             "stable": int(sum(bool(s) for s in stable_one)), "equal": bool(same.all())}
 
 
+def _one_against_all(runs: list[tuple[str, object]], bench) -> tuple[list[dict], list]:
+    """``bench(devices)`` for each (label, devices) of ``runs``, said as it goes: its rows and
+    what each kept for the comparison."""
+    rows, kept = [], []
+    for label, devices in runs:
+        _say(label)
+        row, out = bench(devices)
+        rows.append(row)
+        kept.append(out)
+        _say(json.dumps(row))
+    return rows, kept
+
+
 def droptests_part(args, all_devices) -> tuple[dict, dict | None]:
     from phirie_jax.construct.physics import warp_batch
     from phirie_jax.construct.physics.config import DropTestConfig
@@ -282,13 +282,9 @@ def droptests_part(args, all_devices) -> tuple[dict, dict | None]:
     models, qpos0 = drop_inputs(args.candidates, args.seed, config)
     result = {"candidates": args.candidates, "steps_per_candidate": config.settle_steps + config.free_steps,
               "models_s": round(time.perf_counter() - t0, 2)}
-    rows, kept = [], []
-    for devices in (1, all_devices):
-        _say(f"MJX drop tests on {1 if devices == 1 else len(devices)} device(s)")
-        row, out = bench_mjx_drops(models, qpos0, config, args.repeats, devices)
-        rows.append(row)
-        kept.append(out)
-        _say(json.dumps(row))
+    rows, kept = _one_against_all(
+        [(f"MJX drop tests on {n} device(s)", d) for n, d in ((1, 1), (len(all_devices), all_devices))],
+        lambda devices: bench_mjx_drops(models, qpos0, config, args.repeats, devices))
     result["one_device"], result["all_devices"] = rows
     result["comparison"] = compare_drops(models, qpos0, config, *kept, "mjx")
     result["speedup"] = round(rows[0]["run_s"] / rows[1]["run_s"], 3)
@@ -301,13 +297,8 @@ def droptests_part(args, all_devices) -> tuple[dict, dict | None]:
     if gpus == ["cpu"]:
         return result, {"skipped": "Warp sees no GPU: nothing to divide"}
     warp = {"candidates": args.candidates}
-    rows, kept = [], []
-    for names in (gpus[:1], gpus):
-        _say(f"Warp drop tests on {names}")
-        row, out = bench_warp_drops(models, qpos0, config, args.repeats, names)
-        rows.append(row)
-        kept.append(out)
-        _say(json.dumps(row))
+    rows, kept = _one_against_all([(f"Warp drop tests on {names}", names) for names in (gpus[:1], gpus)],
+                                  lambda names: bench_warp_drops(models, qpos0, config, args.repeats, names))
     warp["one_device"], warp["all_devices"] = rows
     warp["comparison"] = compare_drops(models, qpos0, config, *kept, "warp")
     warp["speedup"] = round(rows[0]["run_s"] / rows[1]["run_s"], 3)
