@@ -25,10 +25,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from experiments.profiling import kernel_summary
 from experiments.report import emit
 from experiments.timing import timed
-from phirie_jax.interact.batched import BatchedEnvironment  # noqa: E402
-from phirie_jax.interact.environment import Environment  # noqa: E402
+from phirie_jax.interact.batched import BatchedEnvironment
+from phirie_jax.interact.environment import Environment
 
 
 def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int) -> dict:
@@ -42,7 +43,7 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
 
 
 def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
-                  collision: str, max_images: int) -> dict:
+                  collision: str, max_images: int, loop: bool = True, trace: Path | None = None) -> dict:
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
@@ -60,7 +61,31 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     env.data.xquat[:] = quats / np.linalg.norm(quats, axis=1, keepdims=True)  # float32 in MJX
     single = np.asarray(env.render(cameras[0]).rgb)
     vs_single = float(np.max(np.abs(np.asarray(out.rgb[0, 0]) - single)))
-    # the same work with the single environment in a loop: worlds × steps, worlds × cameras frames
+    frames = worlds * len(cameras)
+    result = {
+        "worlds": worlds, "cameras": len(cameras), "steps": steps, "collision": collision,
+        "colliding_geoms": int(np.sum((batch.mj_model.geom_contype | batch.mj_model.geom_conaffinity) > 0)),
+        "put_model_s": round(put_s, 2),
+        "step_compile_s": round(step_first - step_s, 2), "render_compile_s": round(render_first - render_s, 2),
+        "world_steps_per_s": round(worlds * steps / step_s, 1),
+        "frames_per_s": round(frames / render_s, 2),
+        "uint8_frames_per_s": round(frames / pixels_s, 2), "uint8_render_compile_s": round(pixels_first - pixels_s, 2),
+        "images_per_render_call": max_images, "moving_gaussians": int(env.object_gaussians.num),
+        "max_abs_rgb_diff_world0_vs_single": vs_single,
+    }
+    if trace is not None:
+        with jax.profiler.trace(str(trace), create_perfetto_trace=True):
+            for _ in range(3):
+                jax.block_until_ready(batch.render(cameras, max_images=max_images, pixels="uint8"))
+        result["uint8_render_kernels"] = kernel_summary(trace, calls=3)
+    if loop:
+        result.update(_loop_baseline(env, worlds, cameras, steps, step_s, render_s))
+    return result
+
+
+def _loop_baseline(env: Environment, worlds: int, cameras: list[int], steps: int, step_s: float,
+                   render_s: float) -> dict:
+    """The same work with the single environment in a loop: worlds × steps, worlds × cameras frames."""
     env.reset()
     t0 = time.perf_counter()
     for _ in range(worlds):
@@ -72,21 +97,10 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
             jax.block_until_ready(env.render(c).rgb)
     loop_render_s = time.perf_counter() - t0
     frames = worlds * len(cameras)
-    return {
-        "worlds": worlds, "cameras": len(cameras), "steps": steps, "collision": collision,
-        "colliding_geoms": int(np.sum((batch.mj_model.geom_contype | batch.mj_model.geom_conaffinity) > 0)),
-        "put_model_s": round(put_s, 2),
-        "step_compile_s": round(step_first - step_s, 2), "render_compile_s": round(render_first - render_s, 2),
-        "world_steps_per_s": round(worlds * steps / step_s, 1),
-        "frames_per_s": round(frames / render_s, 2),
-        "uint8_frames_per_s": round(frames / pixels_s, 2), "uint8_render_compile_s": round(pixels_first - pixels_s, 2),
-        "loop_world_steps_per_s": round(worlds * steps / loop_step_s, 1),
-        "loop_frames_per_s": round(frames / loop_render_s, 2),
-        "speedup_steps_vs_loop": round(loop_step_s / step_s, 2),
-        "speedup_frames_vs_loop": round(loop_render_s / render_s, 2),
-        "images_per_render_call": max_images, "moving_gaussians": int(env.object_gaussians.num),
-        "max_abs_rgb_diff_world0_vs_single": vs_single,
-    }
+    return {"loop_world_steps_per_s": round(worlds * steps / loop_step_s, 1),
+            "loop_frames_per_s": round(frames / loop_render_s, 2),
+            "speedup_steps_vs_loop": round(loop_step_s / step_s, 2),
+            "speedup_frames_vs_loop": round(loop_render_s / render_s, 2)}
 
 
 def main() -> None:
@@ -102,6 +116,10 @@ def main() -> None:
     parser.add_argument("--max-images", type=int, default=256,
                         help="images per batched rasterization call")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument("--trace", type=Path, default=None,
+                        help="profile 3 batched renders of the largest batch here; the JSON gets the time per kernel")
+    parser.add_argument("--no-loop", action="store_true",
+                        help="skip the single-environment loop baseline (minutes at thousands of frames)")
     args = parser.parse_args()
 
     env = Environment.load(args.out_dir)
@@ -120,7 +138,8 @@ def main() -> None:
     print(json.dumps(result["single"]), file=sys.stderr, flush=True)
     for worlds in args.worlds:
         result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats,
-                                               args.collision, args.max_images))
+                                               args.collision, args.max_images, loop=not args.no_loop,
+                                               trace=args.trace if worlds == max(args.worlds) else None))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
     emit(result, args.out)
 

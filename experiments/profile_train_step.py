@@ -1,0 +1,209 @@
+"""Where a step of ``phirie capture``'s training goes: one 3DGS train step cut into its parts.
+
+    python -m experiments.profile_train_step SCENE [--gaussians PLY_OR_NPZ] [--out JSON] [--trace DIR]
+
+SCENE: a capture folder (transforms.json or COLMAP cameras + images) whose Gaussians stand for a
+set late in training (e.g. the snowmiku capture: 237,916 Gaussians fitted by gsplat at
+1000×750). ``--gaussians`` may name a ``.npz`` of the PLY's fields (means, quats, log_scales,
+opacity_logits, sh; any float dtype) to carry a smaller file.
+
+Prints JSON: for each part, the first call (compilation included) and the median of later calls
+(each blocked on), all on the same Gaussians, padded to the training loop's bucket, and one
+training view:
+
+- ``project``: the projection of every Gaussian;
+- ``bin``: projection + depth sort + tile intersection buffer + tile sort, at the loop's
+  capacity (``CAPACITY_PER_GAUSSIAN`` × the bucket, grown past the needed count as the loop
+  grows it) and at the needed count's power of two;
+- ``forward``: the whole render;
+- ``loss_grad``: the loss and its gradient (render forward + backward, SSIM, screen gradient);
+- ``photometric_grad``: the loss and its gradient of the image alone (L1 + SSIM);
+- ``adam``: the optimizer update of every parameter;
+- ``train_step``: the loop's jitted step (donated and not), and ``loop_50``: 50 steps as the
+  training loop calls them (a host sync per step) against 50 dispatched without syncing;
+- the same step on the exact count (no padding) and at the tight capacity.
+
+``--trace DIR`` records a profiler trace of 20 steps there; the JSON gets the device time per
+kernel of one step (``experiments.profiling``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.profiling import kernel_summary
+from experiments.timing import timed
+from kernels import splat_fit
+from kernels.composite import TileGrid
+from kernels.project import project_gaussians
+from kernels.raster import RasterConfig, bin_gaussians, rasterize
+from phirie_jax.capture.config import TrainConfig
+from phirie_jax.capture.densify import padded
+from phirie_jax.capture.train import CAPACITY_PER_GAUSSIAN, MIN_CAPACITY, learning_rates, sh_mask
+from phirie_jax.render import gaussian_bucket, next_power_of_two
+from phirie_jax.types import GaussianSplatData
+
+REPEATS = 20
+
+
+def _gaussians(path: Path | None, scene) -> GaussianSplatData:
+    if path is None or path.suffix == ".ply":
+        from phirie_jax.io.ply import read_gaussian_ply
+
+        return read_gaussian_ply(path) if path is not None else scene.gaussians
+    with np.load(path) as z:
+        return GaussianSplatData(**{k: np.asarray(z[k], np.float32) for k in
+                                    ("means", "quats", "log_scales", "opacity_logits", "sh")})
+
+
+def _view(scene, index: int):
+    import cv2
+
+    camera = scene.cameras[index]
+    bgr = cv2.imread(str(camera.image_path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise SystemExit(f"{camera.image_path}: not a readable image")
+    return camera, jnp.asarray(np.ascontiguousarray(bgr[..., ::-1]), jnp.uint8)
+
+
+def _ms(pair) -> dict:
+    first, later = pair
+    return {"first_s": round(first, 4), "ms": round(later * 1e3, 3)}
+
+
+def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None) -> dict:
+    from phirie_jax.io.scene import load_scene
+
+    scene = load_scene(scene_dir, gaussians=gaussians_path if gaussians_path and gaussians_path.suffix == ".ply"
+                       else None)
+    data = _gaussians(gaussians_path, scene)
+    camera, image = _view(scene, 0)
+    height, width = image.shape[:2]
+    config = TrainConfig(steps=7000)
+    size = gaussian_bucket(data.num)
+    params, valid = padded(data, size)
+    K = jnp.asarray(camera.K, jnp.float32)
+    w2c = jnp.asarray(camera.world_to_camera, jnp.float32)
+    Ks, w2cs, images = K[None], w2c[None], image[None]
+    bg = jnp.zeros(3, jnp.float32)
+    lrs = learning_rates(config, 5.0, 3000)
+    mask = sh_mask(config, 6000)
+    loop_capacity = max(MIN_CAPACITY, next_power_of_two(CAPACITY_PER_GAUSSIAN * size))
+    grid = TileGrid(width, height, 16)
+
+    @jax.jit
+    def needed_of(p):
+        g = splat_fit.masked_sh(p, valid, mask)
+        proj = project_gaussians(g, K, w2c, width=width, height=height)
+        return bin_gaussians(proj, grid, 1 << 10)[1]
+
+    needed = int(needed_of(params))
+    while loop_capacity < needed:  # the loop grows its buffer the same way on overflow
+        loop_capacity *= 2
+    tight = next_power_of_two(needed)
+    result = {"gaussians": data.num, "bucket": size, "width": width, "height": height,
+              "tile_intersections": needed, "loop_capacity": loop_capacity, "tight_capacity": tight,
+              "device": str(jax.devices()[0]), "backend": jax.default_backend(), "parts": {}}
+    parts = result["parts"]
+
+    g_masked = jax.jit(splat_fit.masked_sh)(params, valid, mask)
+    project = jax.jit(lambda g: project_gaussians(g, K, w2c, width=width, height=height))
+    parts["project"] = _ms(timed(lambda: project(g_masked), REPEATS))
+    for name, capacity in (("bin_loop_capacity", loop_capacity), ("bin_tight", tight)):
+        fn = jax.jit(lambda g, c=capacity: bin_gaussians(
+            jax.lax.stop_gradient(project_gaussians(g, K, w2c, width=width, height=height)), grid, c))
+        parts[name] = _ms(timed(lambda f=fn: f(g_masked), REPEATS))
+    for name, capacity in (("forward", loop_capacity), ("forward_tight", tight)):
+        raster = RasterConfig(capacity=capacity)
+        fn = jax.jit(lambda g, r=raster: rasterize(g, K, w2c, width=width, height=height, background=bg,
+                                                   config=r).rgb)
+        parts[name] = _ms(timed(lambda f=fn: f(g_masked), REPEATS))
+
+    raster = RasterConfig(capacity=loop_capacity)
+    target = splat_fit.as_float_image(image)
+    offset = jnp.zeros((size, 2), jnp.float32)
+    loss_grad = jax.jit(jax.value_and_grad(
+        lambda p, o: splat_fit.view_loss(p, valid, mask, K, w2c, bg, target, o, config=raster,
+                                         dssim_weight=config.dssim_weight)[0], argnums=(0, 1)))
+    parts["loss_grad"] = _ms(timed(lambda: loss_grad(params, offset), REPEATS))
+    rendered = jax.jit(lambda g: rasterize(g, K, w2c, width=width, height=height, background=bg,
+                                           config=raster).rgb)(g_masked)
+    photometric = jax.jit(jax.value_and_grad(lambda r: splat_fit.photometric_loss(r, target, config.dssim_weight)))
+    parts["photometric_grad"] = _ms(timed(lambda: photometric(rendered), REPEATS))
+    grads = loss_grad(params, offset)[1][0]
+    state = splat_fit.init_state(params)
+
+    @jax.jit
+    def adam(p, s, g):
+        updates, s = splat_fit.optimizer().update(g, s, p)
+        return jax.tree.map(lambda x, u, lr: x + lr * u, p, updates, lrs), s
+
+    parts["adam"] = _ms(timed(lambda: adam(params, state, grads), REPEATS))
+
+    def step_fn(raster_config, donate):
+        static = ("config", "dssim_weight", "exact_screen_gradient")
+        return jax.jit(splat_fit.train_step, static_argnames=static,
+                       donate_argnums=(0, 1, 10, 11) if donate else ())
+
+    def run_steps(fn, p, v, r, count, sync):
+        s, gsum, seen = splat_fit.init_state(p), jnp.zeros(p.num), jnp.zeros(p.num)
+        out = fn(p, s, lrs, v, mask, Ks, w2cs, images, jnp.int32(0), bg, gsum, seen, config=r,
+                 dssim_weight=config.dssim_weight, exact_screen_gradient=config.exact_screen_gradient)
+        jax.block_until_ready(out)
+        p, s, _, gsum, seen = out[:5]
+        t0 = time.perf_counter()
+        for _ in range(count):
+            out = fn(p, s, lrs, v, mask, Ks, w2cs, images, jnp.int32(0), bg, gsum, seen, config=r,
+                     dssim_weight=config.dssim_weight, exact_screen_gradient=config.exact_screen_gradient)
+            p, s, loss, gsum, seen = out[:5]
+            if sync:
+                bool(out[6]), float(loss)
+        jax.block_until_ready(out)
+        return (time.perf_counter() - t0) / count
+
+    exact_params, exact_valid = padded(data, data.num)
+    for name, (p, v, cap, donate) in {
+            "train_step": (params, valid, loop_capacity, False),
+            "train_step_donated": (params, valid, loop_capacity, True),
+            "train_step_tight": (params, valid, tight, True),
+            "train_step_unpadded_tight": (exact_params, exact_valid, tight, True)}.items():
+        fn = step_fn(RasterConfig(capacity=cap), donate)
+        t0 = time.perf_counter()
+        per_step = run_steps(fn, jax.tree.map(jnp.copy, p), v, RasterConfig(capacity=cap), REPEATS, sync=True)
+        parts[name] = {"first_and_run_s": round(time.perf_counter() - t0, 3), "ms": round(per_step * 1e3, 3)}
+    fn = step_fn(RasterConfig(capacity=loop_capacity), True)
+    for sync in (True, False):
+        per_step = run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 50, sync)
+        parts[f"loop_50_{'synced' if sync else 'dispatched'}"] = {"ms": round(per_step * 1e3, 3)}
+
+    if trace is not None:
+        trace.mkdir(parents=True, exist_ok=True)
+        with jax.profiler.trace(str(trace), create_perfetto_trace=True):
+            run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 20, True)
+        result["trace_summary"] = kernel_summary(trace, calls=20)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("--gaussians", type=Path)
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--trace", type=Path)
+    args = parser.parse_args()
+    result = profile(args.scene, args.gaussians, args.trace)
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

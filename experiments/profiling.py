@@ -1,0 +1,34 @@
+"""GPU time by kernel from a profiler trace (``jax.profiler.trace(..., create_perfetto_trace=True)``)."""
+
+from __future__ import annotations
+
+import collections
+import gzip
+import json
+from pathlib import Path
+
+
+def kernel_summary(trace_dir: Path, calls: int, top: int = 30) -> dict:
+    """Device time per kernel name in the newest perfetto trace under ``trace_dir``, per traced
+    call (``calls`` of them): total busy ms per call and the ``top`` kernels by time, each with
+    its launches per call. Only device streams count (processes named ``/device:...``); on a
+    CPU backend, where no such process exists, the host's XLA threads are summed instead."""
+    traces = sorted(Path(trace_dir).rglob("perfetto_trace.json.gz"), key=lambda p: p.stat().st_mtime)
+    if not traces:
+        return {"error": f"no perfetto_trace.json.gz under {trace_dir}"}
+    with gzip.open(traces[-1]) as f:
+        events = json.load(f)["traceEvents"]
+    names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    device = {pid for pid, name in names.items() if name.startswith("/device:")}
+    keep = device or {pid for pid, name in names.items() if name.startswith("/host:")}
+    total, count = collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("ph") == "X" and e.get("pid") in keep and "dur" in e:
+            total[e["name"]] += e["dur"]
+            count[e["name"]] += 1
+    busy_us = sum(total.values())
+    return {"source": "device streams" if device else "host threads (no device process)",
+            "busy_ms_per_call": round(busy_us / 1e3 / calls, 3),
+            "kernels": [{"name": name[:120], "ms_per_call": round(us / 1e3 / calls, 3),
+                         "share": round(us / max(busy_us, 1), 4), "launches_per_call": round(count[name] / calls, 2)}
+                        for name, us in total.most_common(top)]}
