@@ -82,7 +82,7 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None) ->
     from phirie_jax.io.scene import load_scene
 
     scene = load_scene(scene_dir, gaussians=gaussians_path if gaussians_path and gaussians_path.suffix == ".ply"
-                       else None)
+                       else None, check_images=False)  # only the first view's image is read
     data = _gaussians(gaussians_path, scene)
     camera, image = _view(scene, 0)
     height, width = image.shape[:2]
