@@ -59,6 +59,9 @@ AXIS_ROTATIONS = np.array([
 ROBUST_LO, ROBUST_HI = 0.02, 0.98  # paper: scale from the 2nd–98th percentile extents
 MIN_EXTENT = 1e-9                  # guards the extent ratio of a flat candidate
 MIN_CORRESPONDENCES = 3.0          # fewer than this (weighted) → keep the current pose
+# Below this share of a model above the scoring floor (``scored_model``), the whole model is
+# scored: a model that is mostly floor band (a 1 cm bump) must not be judged on a sliver.
+MIN_SCORED_FRACTION = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,15 +197,28 @@ def place(model, rotation, scale, centre_xy, base_z):
     return jnp.concatenate([centre_xy - 0.5 * (lo[:2] + hi[:2]), (base_z - lo[2])[None]])
 
 
-def hypothesis_energy(model, obs, obs_mask, rotation, scale, translation, tau, chunk: int):
+def scored_model(placed, floor):
+    """Which placed model points (Np, 3) E scores: those at or above ``floor`` () — the
+    observation holds no point lower than that (the support and a band above it are cut from
+    Q), so a model point there has nothing it could match. When fewer than
+    ``MIN_SCORED_FRACTION`` of the points remain (a flat model) every point is scored.
+    → (Np,) bool."""
+    above = placed[:, 2] >= floor
+    return above | (jnp.mean(above.astype(placed.dtype)) < MIN_SCORED_FRACTION)
+
+
+def hypothesis_energy(model, obs, obs_mask, rotation, scale, translation, tau, chunk: int, floor=None):
     """E(S) = d_τ(SP, Q) + d_τ(Q, SP) of one hypothesis; → (E, d_τ(SP, Q), d_τ(Q, SP), support).
 
     model (Np, 3) canonical, every row valid; obs (Nq, 3); obs_mask (Nq,) bool; rotation (3, 3);
-    scale (); translation (3,); tau (). The score is ``kernels.chamfer.clipped_chamfer_support``
-    of the placed model against Q (its only home); support = fraction of valid q within τ of SP.
+    scale (); translation (3,); tau (); floor () or None: placed model points below this height
+    take no part in either term (``scored_model``; None or −inf: every point). The score is
+    ``kernels.chamfer.clipped_chamfer_support`` of the placed model against Q (its only home);
+    support = fraction of valid q within τ of SP.
     """
     x = scale * model @ rotation.T + translation
-    return clipped_chamfer_support(x, None, obs, obs_mask, tau, chunk)
+    x_mask = None if floor is None else scored_model(x, floor)
+    return clipped_chamfer_support(x, x_mask, obs, obs_mask, tau, chunk)
 
 
 def _correspondences(model, obs, obs_mask, rotation, scale, translation, max_corr, chunk: int):
@@ -282,7 +298,7 @@ def refine_scale(model, obs, obs_mask, rotation, scale, translation, max_corr, i
 
 
 def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: SearchSpec,
-             mesh: BatchMesh | None = None) -> Registration:
+             mesh: BatchMesh | None = None, floor=None) -> Registration:
     """Search, refine and score; see the module docstring. ``spec`` and ``mesh`` are static.
 
     model (model_points, 3) canonical, random order; obs (Nq, 3) gravity frame, valid rows
@@ -290,6 +306,8 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     has_support () bool; tau () clip radius; max_corr () ICP correspondence radius (metres).
     mesh: the devices the hypotheses (of the sweep, then of the refinement) are spread over,
     ``hypothesis_batch`` at a time on each (``kernels.sharding.map_rows``); None: this device.
+    floor () or None: every score leaves out the placed model points below this height
+    (``hypothesis_energy``); ICP matches every point as before.
     """
     dtype = obs.dtype
     p_sweep = model[: spec.sweep_model_points]
@@ -317,13 +335,15 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     rots = yaw_matrix(yaws[y_idx]) @ axis_rots[a_idx]      # (H, 3, 3)
     scales = s0[a_idx] * mults[m_idx]                        # (H,)
 
+    cut = jnp.asarray(-jnp.inf if floor is None else floor, dtype)
+
     def sweep_one(shared, h):
-        p, q, m, centre, base, clip = shared
+        p, q, m, centre, base, clip, low = shared
         rot, s = h
         t = place(p, rot, s, centre, base)
-        return hypothesis_energy(p, q, m, rot, s, t, clip, spec.chunk)[0]
+        return hypothesis_energy(p, q, m, rot, s, t, clip, spec.chunk, low)[0]
 
-    energy = map_rows(sweep_one, (p_sweep, q_sweep, m_sweep, centre_xy, base_z, tau), (rots, scales),
+    energy = map_rows(sweep_one, (p_sweep, q_sweep, m_sweep, centre_xy, base_z, tau, cut), (rots, scales),
                       spec.hypothesis_batch, mesh)
     per_axis = energy.reshape(len(spec.axes), spec.hypotheses_per_axis)
     axis_best = jnp.min(per_axis, axis=1)
@@ -338,7 +358,7 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
     pick = (best + chosen[:, None] * spec.hypotheses_per_axis).reshape(-1)
 
     def refine_one(shared, h):
-        full, p, q, m, q_full, m_full, centre, base, supported, clip, corr = shared
+        full, p, q, m, q_full, m_full, centre, base, supported, clip, corr, low = shared
         rot, s = h
         t = place(p, rot, s, centre, base)
         rot, t = icp(p, q, m, rot, s, t, corr, spec.icp_iterations, spec.rotation == "yaw", spec.chunk)
@@ -346,10 +366,10 @@ def register(model, obs, obs_mask, support_z, has_support, tau, max_corr, spec: 
         if spec.snap_to_support:
             gap = base - (jnp.min(s * full @ rot[2]) + t[2])
             t = t.at[2].add(jnp.where(supported & (jnp.abs(gap) < clip), gap, 0.0))
-        e, mq, qm, sup = hypothesis_energy(full, q_full, m_full, rot, s, t, clip, spec.chunk)
+        e, mq, qm, sup = hypothesis_energy(full, q_full, m_full, rot, s, t, clip, spec.chunk, low)
         return rot, t, s, e, mq, qm, sup
 
-    shared = (model, p_icp, q_icp, m_icp, q_score, m_score, centre_xy, base_z, has_support, tau, max_corr)
+    shared = (model, p_icp, q_icp, m_icp, q_score, m_score, centre_xy, base_z, has_support, tau, max_corr, cut)
     rot, t, s, e, mq, qm, sup = map_rows(refine_one, shared, (rots[pick], scales[pick]),
                                          spec.hypothesis_batch, mesh)
     axis_ids = jnp.asarray(spec.axes, jnp.int32)[a_idx[pick]]

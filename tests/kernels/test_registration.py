@@ -27,7 +27,7 @@ from kernels.registration import (
     yaw_matrix,
 )
 from phirie_jax.geometry import rotation_to_z
-from tests.kernels.shapes import in_random_frame, l_shape, padded, partial_view
+from tests.kernels.shapes import box_surface, in_random_frame, l_shape, padded, partial_view
 
 TAU = 0.03
 MAX_CORR = 0.06
@@ -195,3 +195,79 @@ def test_retry_fixes_a_wrong_up_axis_in_the_same_call(shape):
     assert rot_err < ROT_TOL_DEG and scale_err < SCALE_TOL and trans_err < TRANS_TOL
     scale_t = np.cbrt(np.linalg.det(truth[:3, :3]))
     assert rotation_angle_deg(np.asarray(every.rotation[own]), truth[:3, :3] / scale_t) > 30
+
+
+FLOOR = 0.005  # the observation's support clearance: Q has no point lower than this
+
+
+def _open_box(n, rng, size=(0.12, 0.12, 0.05)):
+    """A bowl-like open box on z = 0 (floor and four walls, no lid): points (n, 3)."""
+    pts, normals = box_surface((-size[0] / 2, -size[1] / 2, 0.0), size, 2 * n, rng)
+    return pts[normals[:, 2] <= 0.5][:n]   # drop the lid
+
+
+def _reference(placed, obs, floor):
+    """NumPy E over the placed model points at or above ``floor`` (all of them below half)."""
+    keep = placed[:, 2] >= floor
+    if keep.mean() < 0.5:
+        keep[:] = True
+    p = placed[keep]
+    d_mq = np.array([np.min(np.linalg.norm(obs - x, axis=1)) for x in p])
+    d_qm = np.array([np.min(np.linalg.norm(p - q, axis=1)) for q in obs])
+    return np.minimum(d_mq, TAU).mean(), np.minimum(d_qm, TAU).mean()
+
+
+def test_energy_leaves_out_the_model_below_the_floor_like_a_numpy_reference():
+    """The candidate's base stands on the support, where the observation has no point: with the
+    floor, its points take no part in E, which falls to the reference over the rest."""
+    rng = np.random.default_rng(7)
+    model = _open_box(1200, rng).astype(np.float32)
+    obs = _open_box(1500, rng)
+    obs = obs[obs[:, 2] >= FLOOR][:400].astype(np.float32)   # the observation is cut like Q
+    obs_p, mask = padded(obs, 512)
+    args = (jnp.asarray(model), jnp.asarray(obs_p), jnp.asarray(mask), jnp.eye(3), jnp.float32(1.0),
+            jnp.zeros(3), TAU, 64)
+    e_all, mq_all, _, _ = hypothesis_energy(*args)
+    e_cut, mq_cut, qm_cut, _ = hypothesis_energy(*args, jnp.float32(FLOOR))
+    ref_mq, ref_qm = _reference(model.astype(np.float64), obs.astype(np.float64), FLOOR)
+    np.testing.assert_allclose([float(mq_cut), float(qm_cut), float(e_cut)], [ref_mq, ref_qm, ref_mq + ref_qm],
+                               atol=2e-6)
+    assert float(mq_cut) < 0.5 * float(mq_all) and float(e_cut) < float(e_all)
+    # −inf (no cut) is the paper's E
+    e_inf = hypothesis_energy(*args, jnp.float32(-np.inf))[0]
+    assert float(e_inf) == pytest.approx(float(e_all), abs=ENERGY_TOL)
+
+
+def test_a_model_mostly_below_the_floor_is_scored_whole():
+    """A 4 mm slab (an optimiser's bump) lies under a 5 mm floor: scoring what is left would
+    judge it on nothing, so every point is scored."""
+    rng = np.random.default_rng(8)
+    slab, _ = box_surface((-0.05, -0.05, 0.0), (0.1, 0.1, 0.004), 800, rng)
+    obs, mask = padded((slab[:300] + [0.0, 0.0, 0.01]).astype(np.float32), 512)
+    args = (jnp.asarray(slab, jnp.float32), jnp.asarray(obs), jnp.asarray(mask), jnp.eye(3), jnp.float32(1.0),
+            jnp.zeros(3), TAU, 64)
+    whole = [float(x) for x in hypothesis_energy(*args)[:3]]
+    cut = [float(x) for x in hypothesis_energy(*args, jnp.float32(FLOOR))[:3]]
+    np.testing.assert_allclose(cut, whole, atol=ENERGY_TOL)
+
+
+def test_registered_energy_with_a_floor_is_the_cut_E_of_the_returned_placement(shape):
+    points, q = shape
+    spec = SearchSpec(axes=(0,), num_yaws=4, scale_multipliers=(1.0,), model_points=1024, sweep_model_points=128,
+                      sweep_obs_points=128, icp_model_points=256, icp_obs_points=256, score_obs_points=512,
+                      icp_iterations=2, scale_iterations=2, refine_other_axes=0, hypothesis_batch=4)
+    model = points[np.random.default_rng(3).permutation(len(points))[:1024]].astype(np.float32)
+    obs, mask = padded(q, 1024)
+    result = jax.device_get(_register(jnp.asarray(model), jnp.asarray(obs), jnp.asarray(mask), jnp.float32(0.0),
+                                      jnp.bool_(True), jnp.float32(TAU), jnp.float32(MAX_CORR), spec=spec,
+                                      floor=jnp.float32(FLOOR)))
+    obs, mask = obs[:spec.score_obs_points], mask[:spec.score_obs_points]
+    for row in range(len(result.energy)):
+        placed = float(result.scale[row]) * model @ np.asarray(result.rotation[row]).T + np.asarray(result.translation[row])
+        keep = placed[:, 2] >= FLOOR
+        assert 0.5 < keep.mean() < 1.0   # the cut is in play
+        e, ab, ba = clipped_chamfer(jnp.asarray(placed), jnp.asarray(keep), jnp.asarray(obs), jnp.asarray(mask),
+                                    TAU, spec.chunk)
+        np.testing.assert_allclose([float(result.energy[row]), float(result.model_to_obs[row]),
+                                    float(result.obs_to_model[row])], [float(e), float(ab), float(ba)],
+                                   atol=ENERGY_TOL)

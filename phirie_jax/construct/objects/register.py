@@ -32,14 +32,14 @@ OWN_AXIS = (0,)          # +z: the candidate's own up
 OTHER_AXES = (1, 2, 3, 4, 5)
 
 
-def _traced_register(model, obs, mask, support_z, has_support, tau, max_corr, *, spec, mesh):
+def _traced_register(model, obs, mask, support_z, has_support, tau, max_corr, floor, *, spec, mesh):
     TRACE_COUNTS["register"] += 1  # runs only while tracing: once per compiled program
-    return register(model, obs, mask, support_z, has_support, tau, max_corr, spec, mesh)
+    return register(model, obs, mask, support_z, has_support, tau, max_corr, spec, mesh, floor)
 
 
-def _traced_score(model, obs, mask, rotation, scale, translation, tau, *, chunk):
+def _traced_score(model, obs, mask, rotation, scale, translation, tau, floor, *, chunk):
     TRACE_COUNTS["score"] += 1
-    energy, mq, qm, support = hypothesis_energy(model, obs, mask, rotation, scale, translation, tau, chunk)
+    energy, mq, qm, support = hypothesis_energy(model, obs, mask, rotation, scale, translation, tau, chunk, floor)
     return energy, mq, qm, support, scale * scale_init(model @ rotation.T, robust_extents(obs, mask))
 
 
@@ -59,10 +59,13 @@ class Observation:
     count: int
     support_z: float
     has_support: bool
+    floor: float = -np.inf  # E leaves out model points placed below this (``scored_model``)
 
 
 def prepare_observation(q_gravity: np.ndarray, support_z: float, has_support: bool,
-                        config: RegistrationConfig) -> Observation:
+                        config: RegistrationConfig, cut_at_support: bool = False) -> Observation:
+    """Q padded to its bucket. ``cut_at_support``: Q was cut ``config.unseen_base`` above the
+    support (a plane under the instance), so E leaves out the model points below that height."""
     n = len(q_gravity)
     bucket = obs_bucket(n, config.min_obs_bucket)
     order = np.random.default_rng(config.seed).permutation(n)
@@ -70,7 +73,10 @@ def prepare_observation(q_gravity: np.ndarray, support_z: float, has_support: bo
     points[:n] = q_gravity[order]
     mask = np.zeros(bucket, bool)
     mask[:n] = True
-    return Observation(points, mask, n, float(support_z), bool(has_support))
+    floor = -np.inf
+    if cut_at_support and config.unseen_base is not None:
+        floor = float(support_z) + config.unseen_base
+    return Observation(points, mask, n, float(support_z), bool(has_support), floor)
 
 
 def sample_model(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int) -> np.ndarray:
@@ -137,7 +143,8 @@ def search(model: np.ndarray, obs: Observation, config: RegistrationConfig, axes
     spec = search_spec(config, axes, snap)
     out = _register_jit(jnp.asarray(model), jnp.asarray(obs.points), jnp.asarray(obs.mask),
                         jnp.float32(obs.support_z), jnp.bool_(obs.has_support), jnp.float32(config.tau),
-                        jnp.float32(config.icp_max_correspondence), spec=spec, mesh=BatchMesh.over(devices))
+                        jnp.float32(config.icp_max_correspondence), jnp.float32(obs.floor), spec=spec,
+                        mesh=BatchMesh.over(devices))
     out = jax.device_get(out)
     best: dict[int, Hypothesis] = {}
     for r in range(len(out.energy)):
@@ -158,6 +165,7 @@ def score_placement(model: np.ndarray, obs: Observation, placement: np.ndarray,
     n = min(config.search.score_obs_points, len(obs.points))
     energy, mq, qm, support, s0 = jax.device_get(_score_jit(
         jnp.asarray(model), jnp.asarray(obs.points[:n]), jnp.asarray(obs.mask[:n]), jnp.asarray(rot, jnp.float32),
-        jnp.float32(1.0), jnp.asarray(trans, jnp.float32), jnp.float32(config.tau), chunk=config.search.chunk))
+        jnp.float32(1.0), jnp.asarray(trans, jnp.float32), jnp.float32(config.tau), jnp.float32(obs.floor),
+        chunk=config.search.chunk))
     return Hypothesis("+z", 0.0, placement.copy(), 1.0, float(s0), float(energy), float(mq), float(qm),
                       float(support))

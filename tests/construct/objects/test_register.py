@@ -31,6 +31,38 @@ def test_buckets_and_observation_layout():
     assert sorted(map(tuple, obs.points[:300].round(5))) == sorted(map(tuple, q.astype(np.float32).round(5)))
 
 
+def test_the_scoring_floor_is_the_observations_cut_above_a_plane_support():
+    """Q was cut ``unseen_base`` above a plane support: E leaves out the model below that height;
+    without a cut (no plane under the instance) or with ``unseen_base`` None, nothing is left out."""
+    q = np.random.default_rng(0).random((300, 3))
+    assert reg.prepare_observation(q, 0.2, True, SMALL, cut_at_support=True).floor == pytest.approx(
+        0.2 + SMALL.unseen_base)
+    assert reg.prepare_observation(q, 0.2, True, SMALL).floor == -np.inf
+    paper = dataclasses.replace(SMALL, unseen_base=None)
+    assert reg.prepare_observation(q, 0.2, True, paper, cut_at_support=True).floor == -np.inf
+
+
+def test_a_placed_base_below_the_floor_does_not_count_against_a_candidate():
+    """An open box (a bowl's shape) placed on its support: the observation, cut 5 mm above the
+    support, has nothing under its base; scored with the cut, E drops by the base's share."""
+    from tests.kernels.shapes import box_surface
+
+    rng = np.random.default_rng(4)
+    pts, normals = box_surface((-0.06, -0.06, 0.0), (0.12, 0.12, 0.05), 6000, rng)
+    q = pts[(normals[:, 2] <= 0.5) & (pts[:, 2] >= 0.005)][:800]
+    vertices = np.array([[x, y, z] for x in (-0.06, 0.06) for y in (-0.06, 0.06) for z in (0.0, 0.05)])
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, trimesh.convex.convex_hull(vertices).faces)
+    model = reg.sample_model(mesh.vertices, mesh.faces, SMALL.points, 0)
+    placement = np.eye(4)
+    whole = reg.score_placement(model, reg.prepare_observation(q, 0.0, True, SMALL), placement, SMALL)
+    cut = reg.score_placement(model, reg.prepare_observation(q, 0.0, True, SMALL, cut_at_support=True),
+                              placement, SMALL)
+    assert cut.model_to_obs < whole.model_to_obs - 0.002 and cut.energy < whole.energy
+    assert cut.obs_to_model == pytest.approx(whole.obs_to_model, abs=2e-4)
+
+
 def test_sample_model_lies_on_the_surface():
     import trimesh
 
