@@ -150,3 +150,32 @@ def test_gsplat_fit_export_reads_back_as_a_fit(tmp_path):
     assert back.record["scene"] == "s" and back.gaussians.sh.dtype == np.float32
     np.testing.assert_array_equal(back.gaussians.means, data.means)
     np.testing.assert_allclose(back.gaussians.sh, data.sh, rtol=1e-3, atol=1e-3)
+
+
+def test_depth_probe_reference_two_layers():
+    """A semi-transparent layer (opacity 0.4) in front of an opaque one: the probe's per-pixel
+    reference gives the rasterizer's expected depth there, and its median (accumulated opacity
+    first past 0.5) is the opaque layer's depth."""
+    import jax.numpy as jnp
+    import numpy as np
+    import pytest
+
+    from experiments.depth_probe import composite_pixel
+    from kernels.gaussians import Gaussians
+    from kernels.project import project_gaussians
+    from kernels.raster import RasterConfig, rasterize
+
+    K = jnp.asarray([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]], jnp.float32)
+    w2c = jnp.eye(4, dtype=jnp.float32)
+    g = Gaussians(means=jnp.asarray([[0.0, 0, 1.0], [0.0, 0, 1.5]], jnp.float32),
+                  quats=jnp.asarray([[1.0, 0, 0, 0]] * 2, jnp.float32),
+                  log_scales=jnp.full((2, 3), np.log(0.2), jnp.float32),
+                  opacity_logits=jnp.asarray([np.log(0.4 / 0.6), 8.0], jnp.float32),
+                  sh=jnp.zeros((2, 1, 3), jnp.float32))
+    proj = project_gaussians(g, K, w2c, width=32, height=32)
+    rows = [np.asarray(x, np.float64) for x in (proj.means2d, proj.conics, proj.opacities, proj.depths)]
+    expected, at, alpha = composite_pixel(np.array([16.5, 16.5]), *rows)
+    out = rasterize(g, K, w2c, width=32, height=32, config=RasterConfig(compositor="jax"))
+    assert expected == pytest.approx(float(out.depth_normalized[16, 16]), abs=1e-4)
+    assert alpha == pytest.approx(float(out.alpha[16, 16]), abs=1e-5)
+    assert 1.0 < expected < 1.5 and at[0.5] == pytest.approx(1.5) and at[0.95] == pytest.approx(1.5)
