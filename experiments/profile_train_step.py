@@ -23,14 +23,18 @@ training view:
   training loop calls them (a host sync per step) against 50 dispatched without syncing;
 - the same step on the exact count (no padding) and at the tight capacity.
 
-``--trace DIR`` records a profiler trace of 20 steps there; the JSON gets the device time per
+``--levers`` times the render and the loss gradient per Pallas setting (chunk, warps, prefetch)
+and the render with and without its depth channel. ``--trace DIR`` records a profiler trace of 20 steps there; the JSON gets the device time per
 kernel of one step (``experiments.profiling``).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -42,6 +46,7 @@ from experiments.profiling import kernel_summary
 from experiments.timing import timed
 from kernels import splat_fit
 from kernels.composite import TileGrid
+from kernels.composite_pallas import PallasSettings
 from kernels.project import project_gaussians
 from kernels.raster import RasterConfig, bin_gaussians, rasterize
 from phirie_jax.capture.config import TrainConfig
@@ -78,7 +83,31 @@ def _ms(pair) -> dict:
     return {"first_s": round(first, 4), "ms": round(later * 1e3, 3)}
 
 
-def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None) -> dict:
+def _levers(params, valid, mask, K, w2c, bg, target, offset, capacity: int, config: TrainConfig, width: int,
+            height: int, g_masked) -> dict:
+    """The render (colour and depth, colour only) and the loss gradient per Pallas setting."""
+    out = {}
+    for chunk, warps, prefetch in itertools.product((8, 16, 32), (2, 4, 8), (False, True)):
+        if prefetch and (chunk, warps) != (8, 4):
+            continue
+        settings = PallasSettings(chunk=chunk, num_warps=warps, prefetch=prefetch)
+        raster = RasterConfig(capacity=capacity, pallas=settings)
+        row = {}
+        for depth in (True, False):
+            r = dataclasses.replace(raster, depth=depth)
+            fn = jax.jit(lambda g, r=r: rasterize(g, K, w2c, width=width, height=height, background=bg,
+                                                  config=r).rgb)
+            row["forward_ms" if depth else "forward_colour_only_ms"] = _ms(timed(lambda f=fn: f(g_masked), 10))["ms"]
+        grad = jax.jit(jax.value_and_grad(
+            lambda p, o, r=raster: splat_fit.view_loss(p, valid, mask, K, w2c, bg, target, o, config=r,
+                                                       dssim_weight=config.dssim_weight)[0], argnums=(0, 1)))
+        row["loss_grad_ms"] = _ms(timed(lambda f=grad: f(params, offset), 10))["ms"]
+        out[f"chunk{chunk}_warps{warps}{'_prefetch' if prefetch else ''}"] = row
+        print(f"profile_train_step: {chunk} {warps} {prefetch} {row}", file=sys.stderr, flush=True)
+    return out
+
+
+def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, levers: bool = False) -> dict:
     from phirie_jax.io.scene import load_scene
 
     scene = load_scene(scene_dir, gaussians=gaussians_path if gaussians_path and gaussians_path.suffix == ".ply"
@@ -183,6 +212,9 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None) ->
         per_step = run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 50, sync)
         parts[f"loop_50_{'synced' if sync else 'dispatched'}"] = {"ms": round(per_step * 1e3, 3)}
 
+    if levers:
+        result["levers"] = _levers(params, valid, mask, K, w2c, bg, target, offset, loop_capacity, config,
+                                   width, height, g_masked)
     if trace is not None:
         trace.mkdir(parents=True, exist_ok=True)
         with jax.profiler.trace(str(trace), create_perfetto_trace=True):
@@ -197,8 +229,10 @@ def main() -> None:
     parser.add_argument("--gaussians", type=Path)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--trace", type=Path)
+    parser.add_argument("--levers", action="store_true", help="also time the render and the loss gradient per "
+                        "Pallas setting (chunk, warps, prefetch) and with and without the depth channel")
     args = parser.parse_args()
-    result = profile(args.scene, args.gaussians, args.trace)
+    result = profile(args.scene, args.gaussians, args.trace, args.levers)
     text = json.dumps(result, indent=1)
     print(text)
     if args.out is not None:

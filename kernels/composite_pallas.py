@@ -161,10 +161,11 @@ def _forward_kernel(grid: TileGrid, chunk: int, prefetch: bool, start_ref, count
         i, trans, done, last, acc, loads = carry
         (pos, valid, _, columns), loads = chunks.take(i, loads)
         alpha, _, _, _, _ = _chunk_alpha(px, py, columns, valid)
-        log_keep = jnp.log1p(-alpha)                      # (P, B), ≥ log(0.01)
+        keep = 1.0 - alpha                                # (P, B), ≥ 0.01
+        log_keep = jnp.log(keep)                          # log of at most 1 − 1/255: log1p's accuracy not needed
         running = jnp.cumsum(log_keep, axis=1)
-        incl = trans[:, None] * jnp.exp(running)          # T after each entry, no stop
-        excl = trans[:, None] * jnp.exp(running - log_keep)
+        excl = trans[:, None] * jnp.exp(running - log_keep)  # T before each entry, no stop
+        incl = excl * keep                                # ... and after it (one exp a pair, not two)
         # T only decreases: once an entry fails the floor every later one does too, so
         # ``active`` is exactly what the sequential 3DGS loop would add.
         active = (~done)[:, None] & (alpha > 0.0) & (incl >= T_MIN)
@@ -213,7 +214,8 @@ def _backward_kernel(grid: TileGrid, chunk: int, prefetch: bool, interpret: bool
         alpha, gauss, raw, dx, dy = _chunk_alpha(px, py, columns, valid)
         active = (alpha > 0.0) & (pos[None, :] < last[:, None])
         alpha = jnp.where(active, alpha, 0.0)
-        log_keep = jnp.log1p(-alpha)
+        keep = 1.0 - alpha
+        log_keep = jnp.log(keep)
         running = jnp.cumsum(log_keep, axis=1)
         # T before the chunk = T after / Π(1 − α) (3DGS's division, as one exp of a sum).
         trans_before = trans_after * jnp.exp(-jnp.sum(log_keep, axis=1))
@@ -226,7 +228,7 @@ def _backward_kernel(grid: TileGrid, chunk: int, prefetch: bool, interpret: bool
         contrib = weights * g_feat
         contrib_total = jnp.sum(contrib, axis=1)
         behind = (rg_after + contrib_total)[:, None] - jnp.cumsum(contrib, axis=1)  # Σ_{k > j}
-        d_alpha = jnp.where(active, t_excl * g_feat - behind / (1.0 - alpha), 0.0)
+        d_alpha = jnp.where(active, t_excl * g_feat - behind / keep, 0.0)
         d_raw = jnp.where(raw < ALPHA_MAX, d_alpha, 0.0)     # the clamp has zero slope
         d_sigma = d_raw * raw                                # d(o·e^σ)/dσ = o·e^σ
         a, b, c = (x[None, :] for x in columns[2:5])

@@ -39,7 +39,7 @@ from kernels.pytree import pytree_dataclass, static_field
 
 MAX_INTERSECTIONS = 1 << 30  # beyond this the int32 bookkeeping could overflow: always "overflow"
 DEPTH_EPS = 1e-10            # guards depth / alpha where nothing was hit
-BASE_COLUMNS = NUM_GEOMETRY + 4  # composite rows before the features: geometry, rgb, depth
+BASE_COLUMNS = NUM_GEOMETRY + 4  # composite rows before the features: geometry, rgb, depth (when on)
 # Tiles in flight (kernels.composite). A CPU wants few: idle slots cost work. A GPU wants
 # enough to fill it, but the loop runs about as many steps as the longest tile needs
 # whatever the slot count, so extra slots mostly compute masked work. Measured on an H100
@@ -64,6 +64,8 @@ class RasterConfig:
         ``resolved_sequential``. The backward is the same either way.
     compositor: "pallas" (``kernels.composite_pallas``), "jax" (``kernels.composite``) or
         "auto": Pallas on a GPU with the custom backward, JAX otherwise.
+    depth: composite the depth channel. Off, ``RasterOutput.depth`` is zeros and the
+        compositor carries one channel less (training and policy frames need colour only).
     pallas: the Pallas compositor's settings (``interpret=True`` runs it on a CPU).
         ``chunk``, ``slots`` and ``sequential`` above are the JAX compositor's.
     """
@@ -78,6 +80,7 @@ class RasterConfig:
     sequential: bool = False
     compositor: str = "auto"
     pallas: PallasSettings = PallasSettings()
+    depth: bool = True
 
     def resolved_compositor(self) -> str:
         """"pallas" or "jax" (see ``compositor``)."""
@@ -203,11 +206,11 @@ def rasterize(gaussians: Gaussians, K, world_to_camera, *, width: int, height: i
     if features is None:
         features = jnp.zeros((n, 0), dtype)
     background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
-    params = composite_params(proj, features)  # (N, D) rows of kernels.composite
+    params = composite_params(proj, features, config.depth)  # (N, D) rows of kernels.composite
 
     lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, config.capacity)
     acc, trans, steps, too_long = composite_rows(grid, config, params, lists)
-    rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background)
+    rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background, config.depth)
     return RasterOutput(
         rgb=rgb, depth=depth, alpha=alpha, features=feats,
         radii=jax.lax.stop_gradient(proj.radii),
@@ -220,12 +223,18 @@ def rasterize(gaussians: Gaussians, K, world_to_camera, *, width: int, height: i
     )
 
 
-def composite_params(proj: Projected, features):
+def base_columns(depth: bool) -> int:
+    """Composite rows' columns before the features: geometry, rgb and, when on, depth."""
+    return BASE_COLUMNS if depth else BASE_COLUMNS - 1
+
+
+def composite_params(proj: Projected, features, depth: bool = True):
     """Rows of ``kernels.composite`` for projected Gaussians: features (N, F) →
-    (N, 6 + 3 + 1 + F) [μx, μy, a, b, c, opacity, r, g, b, depth, features...]."""
-    return jnp.concatenate([
-        proj.means2d, proj.conics, proj.opacities[:, None], proj.colors, proj.depths[:, None],
-        features.astype(proj.means2d.dtype)], axis=1)
+    (N, 6 + 3 + 1 + F) [μx, μy, a, b, c, opacity, r, g, b, depth, features...] (no depth
+    column when ``depth`` is off)."""
+    depths = [proj.depths[:, None]] if depth else []
+    return jnp.concatenate([proj.means2d, proj.conics, proj.opacities[:, None], proj.colors, *depths,
+                            features.astype(proj.means2d.dtype)], axis=1)
 
 
 def composite_rows(grid: TileGrid, config: RasterConfig, params, lists: TileLists):
@@ -253,12 +262,16 @@ def composite_rows(grid: TileGrid, config: RasterConfig, params, lists: TileList
     return acc, trans, steps, too_long
 
 
-def images_from_tiles(grid: TileGrid, acc, trans, background):
-    """Per-tile sums acc (NT, P, 4 + F) and transmittance trans (NT, P) → rgb (H, W, 3) over
-    background (3,), depth (H, W), alpha (H, W), features (H, W, F)."""
+def images_from_tiles(grid: TileGrid, acc, trans, background, depth: bool = True):
+    """Per-tile sums acc (NT, P, 4 + F) (3 + F without depth) and transmittance trans (NT, P)
+    → rgb (H, W, 3) over background (3,), depth (H, W) (zeros without it), alpha (H, W),
+    features (H, W, F)."""
     acc = _tiles_to_image(grid, acc)
     trans = _tiles_to_image(grid, trans)
-    return (acc[..., :3] + trans[..., None] * background, acc[..., 3], 1.0 - trans, acc[..., 4:])
+    rgb = acc[..., :3] + trans[..., None] * background
+    if not depth:
+        return rgb, jnp.zeros_like(trans), 1.0 - trans, acc[..., 3:]
+    return rgb, acc[..., 3], 1.0 - trans, acc[..., 4:]
 
 
 def render_batch(gaussians: Gaussians, Ks, world_to_cameras, *, width: int, height: int,

@@ -22,7 +22,7 @@ from kernels.composite import TileGrid, TileLists
 from kernels.gaussians import Gaussians
 from kernels.project import project_gaussians
 from kernels.pytree import pytree_dataclass
-from kernels.raster import (BASE_COLUMNS, RasterConfig, RasterOutput, bin_gaussians, composite_params,
+from kernels.raster import (RasterConfig, RasterOutput, base_columns, bin_gaussians, composite_params,
                             composite_rows, images_from_tiles)
 
 
@@ -53,7 +53,7 @@ def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height:
     lists, needed = bin_gaussians(proj, grid, config.capacity)
     slot = jnp.arange(config.capacity, dtype=jnp.int32)
     depths = jnp.where(slot < needed, proj.depths[lists.gaussian_ids], jnp.inf)
-    return StaticView(composite_params(proj, features), lists, depths, needed, proj.radii,
+    return StaticView(composite_params(proj, features, config.depth), lists, depths, needed, proj.radii,
                       jnp.sum(proj.visible, dtype=jnp.int32))
 
 
@@ -114,7 +114,7 @@ def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camer
     proj = project_gaussians(moving, K, world_to_camera, width=width, height=height,
                              tile_size=config.tile_size, near=config.near)
     if features is None:
-        features = jnp.zeros((moving.num, view.params.shape[1] - BASE_COLUMNS), dtype)
+        features = jnp.zeros((moving.num, view.params.shape[1] - base_columns(config.depth)), dtype)
     background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
     lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, moving_capacity)
     slot = jnp.arange(moving_capacity, dtype=jnp.int32)
@@ -123,9 +123,9 @@ def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camer
     ns = view.params.shape[0]
     merged = merge_tile_lists(grid, view.lists, view.depths, view.needed, lists, depths, needed,
                               ns)
-    params = jnp.concatenate([view.params, composite_params(proj, features)], axis=0)
+    params = jnp.concatenate([view.params, composite_params(proj, features, config.depth)], axis=0)
     acc, trans, steps, too_long = composite_rows(grid, config, params, merged)
-    rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background)
+    rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background, config.depth)
     return RasterOutput(
         rgb=rgb, depth=depth, alpha=alpha, features=feats,
         radii=jnp.concatenate([view.radii, jax.lax.stop_gradient(proj.radii)]),

@@ -25,6 +25,7 @@ Training images may be float (H, W, 3) in [0, 1] or uint8 (a quarter of the devi
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -74,7 +75,8 @@ def view_loss(params: Gaussians, valid: jax.Array, sh_mask: jax.Array, K: jax.Ar
     means2d_offset (N, 2) or None (``rasterize``)."""
     height, width = target.shape[0], target.shape[1]
     out = rasterize(masked_sh(params, valid, sh_mask), K, world_to_camera, width=width, height=height,
-                    background=background, config=config, means2d_offset=means2d_offset)
+                    background=background, config=dataclasses.replace(config, depth=False),  # colour only
+                    means2d_offset=means2d_offset)
     return photometric_loss(out.rgb, target, dssim_weight), (out.radii, out.overflow, out.num_intersections)
 
 

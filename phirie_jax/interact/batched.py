@@ -377,9 +377,10 @@ class WorldRenderer:
         self._views: dict[tuple, tuple[StaticView, RasterConfig]] = {}
         self.retries = 0
 
-    def views(self, cameras: list[Camera], dtype=np.float32):
+    def views(self, cameras: list[Camera], dtype=np.float32, depth: bool = True):
         """Static views of the background for these cameras (cached): (views, config, Ks,
-        world_to_cameras, width, height)."""
+        world_to_cameras, width, height). ``depth`` off: colour-only views (one channel less
+        to composite; what ``render(..., pixels=...)`` uses)."""
         arrays = [camera_arrays(c, None, dtype) for c in cameras]
         sizes = {(a[2], a[3]) for a in arrays}
         if len(sizes) != 1:
@@ -387,10 +388,10 @@ class WorldRenderer:
         (width, height), = sizes
         Ks = np.stack([a[0] for a in arrays])
         w2cs = np.stack([a[1] for a in arrays])
-        key = (Ks.tobytes(), w2cs.tobytes(), width, height)
+        key = (Ks.tobytes(), w2cs.tobytes(), width, height, depth)
         if key not in self._views:
             background = self.env.background
-            config = dataclasses.replace(self.config, capacity=next_power_of_two(max(
+            config = dataclasses.replace(self.config, depth=depth, capacity=next_power_of_two(max(
                 INITIAL_CAPACITY, INTERSECTIONS_GUESS * background.num)))
             while True:
                 views = _static_views(background, Ks, w2cs, width=width, height=height,
@@ -418,7 +419,7 @@ class WorldRenderer:
         if pixels is not None and pixels not in PIXEL_TYPES:
             raise ValueError(f"pixels: {pixels!r} (expected one of {', '.join(PIXEL_TYPES)}, or None)")
         cams = [self.env.camera(c) for c in cameras]
-        views, config, Ks, w2cs, width, height = self.views(cams)
+        views, config, Ks, w2cs, width, height = self.views(cams, depth=pixels is None)
         placements = jnp.asarray(placements, jnp.float32)
         if placements.shape[1] == 0:  # no body: the padding Gaussian's placement
             placements = jnp.broadcast_to(jnp.eye(4), (placements.shape[0], 1, 4, 4))

@@ -3,6 +3,8 @@ its own properties (constant features, overflow reporting, batching)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -330,3 +332,26 @@ def test_render_batch_pairs_sets_with_cameras():
         for key in ("rgb", "depth", "alpha", "features"):
             np.testing.assert_allclose(getattr(batch, key)[b], getattr(single, key), atol=1e-6)
         assert int(batch.num_intersections[b]) == int(single.num_intersections)
+
+
+def test_colour_only_render_equals_the_full_one(scene_and_reference):
+    """depth=False drops one composited channel: colour, alpha, features and their gradients
+    are the full render's (the same sums in the same order), depth is zeros."""
+    g, feats, K, w2c, bg, _ = scene_and_reference
+    full = render(g, K, w2c, width=WIDTH, height=HEIGHT, background=bg, features=feats, config=DEFAULT)
+    colour = render(g, K, w2c, width=WIDTH, height=HEIGHT, background=bg, features=feats,
+                    config=dataclasses.replace(DEFAULT, depth=False))
+    for key in ("rgb", "alpha", "features"):
+        np.testing.assert_allclose(getattr(colour, key), getattr(full, key), atol=1e-6, err_msg=key)
+    assert float(jnp.max(jnp.abs(full.depth))) > 0 and not np.any(np.asarray(colour.depth))
+
+    def loss(config):
+        def f(gaussians):
+            out = render(gaussians, K, w2c, width=WIDTH, height=HEIGHT, background=bg, features=feats,
+                         config=config)
+            return jnp.sum(out.rgb * jnp.linspace(0.0, 1.0, out.rgb.size).reshape(out.rgb.shape))
+        return jax.jit(jax.grad(f))(g)
+
+    for a, b in zip(jax.tree.leaves(loss(dataclasses.replace(DEFAULT, depth=False))),
+                    jax.tree.leaves(loss(DEFAULT))):
+        np.testing.assert_allclose(a, b, atol=1e-5 * float(jnp.max(jnp.abs(b))) + 1e-9)
