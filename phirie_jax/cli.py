@@ -23,10 +23,9 @@ from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import ConfigValueError, OptionError, SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig
 from phirie_jax.io.camera import outside_paths_allowed
+from phirie_jax.manifest import Manifest
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.pipeline import ConvertConfig
-from phirie_jax.report.config import ReportConfig
-from phirie_jax.view.config import ViewConfig
 from phirie_jax.ranges import (
     AT_LEAST_ONE,
     FRACTION,
@@ -37,6 +36,8 @@ from phirie_jax.ranges import (
     deferred_checks,
     resume_checks,
 )
+from phirie_jax.report.config import ReportConfig
+from phirie_jax.view.config import ViewConfig
 
 Scene = Annotated[Path, tyro.conf.Positional]
 Prompts = Annotated[tuple[str, ...], tyro.conf.UseAppendAction]   # --prompt A --prompt B: both kept
@@ -93,7 +94,7 @@ def _print_converted(facts: dict) -> None:
     from rich.markup import escape
     from rich.table import Table
 
-    from phirie_jax.info import STATUS_COLOURS, status_words
+    from phirie_jax.info import STATUS_COLOURS, status_text
 
     console = Console()
     table = Table(title=f"phirie info: {facts['root']} ({facts['state']})", show_header=False)
@@ -113,7 +114,7 @@ def _print_converted(facts: dict) -> None:
     for row in facts["objects"]:
         cells = ["—" if row[k] is None else str(row[k]) for k in
                  ("id", "status", "candidate", "drop_test", "mass", "friction", "parts", "reason")]
-        words = status_words({**row, "unresolved_checks": row["failed_checks"]})
+        words = status_text(row["status"], row["failed_checks"])
         cells[1] = f"[{STATUS_COLOURS.get(row['status'], 'default')}]{escape(words)}[/]"
         if row.get("mass") is not None:
             cells[4] = f"{row['mass']:.3g}" + (f" ({escape(row['mass_source'])})" if row.get("mass_source") else "")
@@ -215,24 +216,24 @@ def render(scene: Scene, out: Path, camera: int = 0, width: int | None = None,
     print(f"wrote {out} ({cam.width}×{cam.height}, camera {camera}: {cam.name})")
 
 
-def _print_instances(manifest: dict) -> None:
+def _print_instances(manifest: Manifest) -> None:
     from rich.console import Console
     from rich.table import Table
 
     table = Table(title="instances")
     for column in ("id", "category", "views", "points", "confidence", "source"):
         table.add_column(column)
-    for inst in manifest.get("instances", []):
-        table.add_row(str(inst["id"]), str(inst.get("category") or "—"), str(len(inst["views"])),
-                      f"{inst['num_points']:,}", f"{inst.get('confidence', float('nan')):.2f}",
-                      str(inst.get("source")))
+    for inst in manifest.get("instances", ()):
+        confidence = float("nan") if inst.confidence is None else inst.confidence
+        table.add_row(str(inst.id), str(inst.category or "—"), str(len(inst.views)),
+                      f"{inst.num_points:,}", f"{confidence:.2f}", str(inst.source))
     console = Console()
     console.print(table)
     rejected = manifest.get("observe", {}).get("rejected_proposals", [])
     console.print(f"{len(rejected)} proposals rejected (reasons in manifest.json)")
 
 
-def _print_timings(manifest: dict) -> None:
+def _print_timings(manifest: Manifest) -> None:
     """Each stage's seconds, its steps indented under it (``stage.step`` keys)."""
     from rich.console import Console
     from rich.table import Table
@@ -240,7 +241,7 @@ def _print_timings(manifest: dict) -> None:
     table = Table(title="timings (s)")
     table.add_column("stage")
     table.add_column("seconds", justify="right")
-    timings = manifest.get("timings", {})
+    timings = manifest.timings.values
     stages = dict.fromkeys(key.partition(".")[0] for key in timings)  # in the order they ran
     for stage in stages:
         table.add_row(stage, f"{timings[stage]:.1f}" if stage in timings else "")
@@ -326,7 +327,7 @@ def convert(scene: Scene, out: Path, masks: str | None = None, gaussians: Path |
     _print_outcome(manifest)
     _print_timings(manifest)
     if (manifest.get("report") or {}).get("path"):
-        print(f"report: {out / manifest['report']['path']}")
+        print(f"report: {out / manifest.get('report')['path']}")
 
 
 def convert_many(scenes: Annotated[tuple[Path, ...], tyro.conf.Positional], out: Path, address: str | None = None,
@@ -437,7 +438,7 @@ def _with_observe_width(config: ObserveConfig, observe_width: int | None) -> Obs
 
 
 def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians, surface, frame: FrameConfig,
-                stages: tuple[str, ...] | None, allow_outside_paths: bool, prompts: tuple[str, ...] = ()) -> dict:
+                stages: tuple[str, ...] | None, allow_outside_paths: bool, prompts: tuple[str, ...] = ()) -> Manifest:
     """``run_convert`` showing its progress (``progress.display_for``): bars on a terminal, else a
     line as each stage and long step starts and ends, with elapsed times. After a whole conversion,
     ``report.html`` (``config.report``; a failure to write it is one line, not the run's failure)."""
@@ -450,39 +451,38 @@ def _run_stages(scene: Path, out: Path, config: ConvertConfig, masks, gaussians,
                    allow_outside_paths=allow_outside_paths, prompts=prompts)
     start = time.perf_counter()
     with showing(display_for()):
-        manifest = run_convert(scene, out, config, **options)
-        if stages is None and config.report.enabled and not manifest.get("failed_stage"):
+        run_convert(scene, out, config, **options)
+        if stages is None and config.report.enabled and not Manifest.load(out).get("failed_stage"):
             with task("report"):
-                manifest = _write_report(out, config.report) or manifest
+                _write_report(out, config.report)
     print(f"phirie: done in {time.perf_counter() - start:.0f} s", flush=True)
-    return manifest
+    return Manifest.load(out)
 
 
-def _write_report(out: Path, config, video: Path | None = None, frames=()) -> dict | None:
-    """Write ``OUT/report.html``; returns the manifest, or None (and says why) when it failed."""
+def _write_report(out: Path, config, video: Path | None = None, frames=()) -> bool:
+    """Write ``OUT/report.html``; False (and says why) when it failed."""
     from phirie_jax import layout
-    from phirie_jax.manifest import Manifest
     from phirie_jax.report.page import write_report
 
     try:
         write_report(out, config, video=video, frames=frames)
     except Exception as err:  # noqa: BLE001 — the conversion stands; its report is a view of it
         print(f"phirie: {out / layout.REPORT} not written: {type(err).__name__}: {err}", file=sys.stderr, flush=True)
-        return None
-    return Manifest.load_or_create(out).data
+        return False
+    return True
 
 
-def _print_frame(manifest: dict) -> None:
-    frame = manifest.get("frame") or {}
-    if frame:
-        support = frame.get("support")
-        print(f"frame: {frame['scale']:.6g} m per capture unit ({frame['scale_source']}, within ×/÷"
-              f"{frame['scale_uncertainty']:g}); up {[round(v, 4) for v in frame['capture_up']]} "
-              f"({frame['up_source']}); "
+def _print_frame(manifest: Manifest) -> None:
+    frame = manifest.frame()
+    if frame is not None:
+        support = frame.support
+        print(f"frame: {frame.scale:.6g} m per capture unit ({frame.scale_source}, within ×/÷"
+              f"{frame.scale_uncertainty:g}); up {[round(float(v), 4) for v in frame.capture_up]} "
+              f"({frame.up_source}); "
               + (f"support: {support['source']} at {support['height']:.3g} m" if support else "no support plane"))
 
 
-def _print_outcome(manifest: dict) -> None:
+def _print_outcome(manifest: Manifest) -> None:
     """What the run made, and why when it made nothing."""
     from phirie_jax.info import outcome_lines
 
@@ -490,18 +490,18 @@ def _print_outcome(manifest: dict) -> None:
         print(text)
 
 
-def _print_background(manifest: dict) -> None:
+def _print_background(manifest: Manifest) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    b = manifest.get("background")
-    if not b:
+    b = manifest.background()
+    if b is None:
         return
-    table = Table(title=f"background: {b['source_gaussians']} → {b['gaussians']} Gaussians "
-                        f"({b['removed']} removed, {b['filled']} filled)")
+    table = Table(title=f"background: {b.source_gaussians} → {b.gaussians} Gaussians "
+                        f"({b.removed} removed, {b.filled} filled)")
     for column in ("id", "status", "removed", "disks", "view", "reason"):
         table.add_column(column)
-    for obj in b["objects"]:
+    for obj in b.objects:
         removed = obj.get("removed") or {}
         table.add_row(str(obj["id"]), obj["status"], str(removed.get("union", "—")),
                       str((obj.get("fill") or {}).get("disks", "—")), str((obj.get("primary_view") or {}).get("view", "—")),
@@ -509,31 +509,25 @@ def _print_background(manifest: dict) -> None:
     Console().print(table)
 
 
-def _print_objects(manifest: dict) -> None:
+def _print_objects(manifest: Manifest) -> None:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
-    from rich.markup import escape
-
-    from phirie_jax.construct.objects.checks import failed as failed_checks
-    from phirie_jax.info import STATUS_COLOURS, status_words
-    from phirie_jax.manifest import ACCEPTED
+    from phirie_jax.info import STATUS_COLOURS, candidate_name, status_words
 
     table = Table(title="objects")
     for column in ("id", "status", "candidate", "failed checks", "drop test", "reason"):
         table.add_column(column)
-    for obj in manifest.get("objects", []):
-        failed = failed_checks(obj.get("checks") or {})
-        drop = obj.get("drop_test") or {}
+    for obj in manifest.get("objects", ()):
+        failed = obj.failed_checks
+        drop = obj.drop_test or {}
         drift = drop.get("drift_m")
         verdict = "—" if not drop else ("stable" if drop.get("stable") else "unstable") + (
             f" ({100 * drift:.1f} cm)" if drift is not None else f" ({drop.get('error') or 'not measured'})")
-        candidate = obj.get("candidate")
-        colour = STATUS_COLOURS.get(obj.get("status"), "default")
-        table.add_row(str(obj["id"]), f"[{colour}]{escape(status_words(obj))}[/]",
-                      str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—"),
-                      ", ".join(failed) or "—", verdict,
-                      "" if obj.get("status") == ACCEPTED else str(obj.get("reason") or ""))
+        colour = STATUS_COLOURS.get(obj.status, "default")
+        table.add_row(str(obj.id), f"[{colour}]{escape(status_words(obj))}[/]", candidate_name(obj),
+                      ", ".join(failed) or "—", verdict, "" if obj.accepted else str(obj.reason or ""))
     Console().print(table)
 
 
@@ -550,7 +544,8 @@ def droptest(out: Annotated[Path, tyro.conf.Positional], config: PhysicsConfig =
     if not out.is_dir():
         raise SceneInputError(out, None, "not a folder (expected a phirie convert output folder)")
     with locked(out):
-        _print_objects(run_droptest(out, config))
+        run_droptest(out, config)
+        _print_objects(Manifest.load(out))
 
 
 def simulate(out_dir: Annotated[Path, tyro.conf.Positional], out: Path = Path("rollout.mp4"),

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.manifest import is_kept
+from phirie_jax.manifest import Manifest
 from phirie_jax.progress import task
 from phirie_jax.synthetic.scene import write_png
 
@@ -55,17 +55,14 @@ def write_previews(scene_dir: Path, out_dir: Path, background, views: int = PREV
     return rows
 
 
-def placement_errors(manifest: dict, scene_dir: Path) -> dict[int, float]:
-    """Per accepted object: distance (m) between its placed base centre and the true object's."""
+def placement_errors(manifest: Manifest, scene_dir: Path) -> dict[int, float]:
+    """Per kept object: distance (m) between its placed base centre and the true object's."""
     truth = {o["id"]: np.asarray(o["pose"]) for o in json.loads((scene_dir / "gt" / "objects.json").read_text())}
-    errors = {}
-    for obj in manifest.get("objects", []):
-        if is_kept(obj) and obj["id"] in truth:
-            errors[obj["id"]] = float(np.linalg.norm(np.asarray(obj["pose"])[:3, 3] - truth[obj["id"]][:3, 3]))
-    return errors
+    return {obj.id: float(np.linalg.norm(obj.pose[:3, 3] - truth[obj.id][:3, 3]))
+            for obj in manifest.kept_objects() if obj.id in truth}
 
 
-def background_scores(truth, convert_dir: Path, manifest: dict, camera, background_rgb) -> dict:
+def background_scores(truth, convert_dir: Path, manifest: Manifest, camera, background_rgb) -> dict:
     """PSNR of the background stage's result against the truth (objects gone, hidden tabletop
     included; ``truth``: ``synthetic.truth.background_truth``) in one view: inside the region the
     objects covered, with the fill and with the removal alone, and outside it."""
@@ -74,8 +71,8 @@ def background_scores(truth, convert_dir: Path, manifest: dict, camera, backgrou
     from phirie_jax.synthetic.truth import uncovered_region
 
     region = uncovered_region(truth, camera, background_rgb)
-    result = read_gaussian_ply(convert_dir / manifest["background"]["path"])
-    removal_only = result.subset(np.arange(result.num - manifest["background"]["filled"]))
+    result = read_gaussian_ply(convert_dir / manifest.background().path)
+    removal_only = result.subset(np.arange(result.num - manifest.background().filled))
     bg = np.asarray(background_rgb, np.float32)
     images = {name: np.asarray(render(g.to_kernel(), camera, background=bg).rgb)
               for name, g in (("truth", truth.truth), ("filled", result), ("removal_only", removal_only))}
@@ -124,8 +121,8 @@ def _run(out: Path, preset: str, seed: int, console) -> dict:
     scene = timed("synthesize", lambda s: synthesize(scene_dir, preset=preset, seed=seed))
     bg = scene.config.background_rgb
     previews = timed("previews", lambda s: write_previews(scene_dir, media, bg))
-    manifest = timed("convert", lambda s: run_convert(
-        scene_dir, convert_dir, progress=lambda stage: s.update(f"convert: {stage}")))
+    timed("convert", lambda s: run_convert(scene_dir, convert_dir, progress=lambda stage: s.update(f"convert: {stage}")))
+    manifest = Manifest.load(convert_dir)
     env = Environment.load(convert_dir)
     rollout_config = RolloutConfig(background=bg)
     truth = background_truth(scene_dir)  # the capture, its labels and the scene without objects
@@ -142,7 +139,7 @@ def _run(out: Path, preset: str, seed: int, console) -> dict:
 
     robot = timed("robot", lambda s: robot_rollouts(convert_dir, media, bg, s))
     scores = (background_scores(truth, convert_dir, manifest, env.camera(rollout_config.camera), bg)
-              if (manifest.get("background") or {}).get("path") else None)
+              if manifest.background() is not None and manifest.background().path else None)
     table = _summary_table(out, scene, scene_dir, convert_dir, media, manifest, result, previews, scores,
                            rollout_config.camera, {**timings, **_stage_timings(manifest)})
     for row in robot["rows"]:
@@ -150,7 +147,7 @@ def _run(out: Path, preset: str, seed: int, console) -> dict:
     if robot.get("skipped"):
         table.add_row("robot", robot["skipped"])
     console.print(table)
-    return {"timings": timings, "previews": previews, "manifest": manifest, "background_scores": scores,
+    return {"timings": timings, "previews": previews, "manifest": manifest.data, "background_scores": scores,
             "robot": robot, "report": report}
 
 
@@ -192,12 +189,12 @@ def _robot_row(row: dict) -> str:
             f"tilted {row['tilt_deg']:.1f}°")
 
 
-def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: Path, manifest: dict, result: dict,
+def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: Path, manifest: Manifest, result: dict,
                    previews: list[dict], scores: dict | None, camera: int, timings: dict[str, float]):
     """What was converted, how well (against the synthetic truth) and how long it took."""
     from rich.table import Table
 
-    from phirie_jax.construct.objects.checks import failed as failed_checks
+    from phirie_jax.info import candidate_name
 
     table = Table(title=f"phirie demo → {out}")
     table.add_column("what")
@@ -205,20 +202,18 @@ def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: 
     table.add_row("scene", f"{scene_dir} ({len(scene.cameras)} cameras {scene.config.width}×{scene.config.height}, "
                            f"{scene.capture.data.num:,} Gaussians)")
     table.add_row("true objects", ", ".join(f"{o.id}:{o.shape.category}" for o in scene.objects))
-    table.add_row("instances observed", str(len(manifest.get("instances", []))))
+    table.add_row("instances observed", str(len(manifest.get("instances", ()))))
     errors = placement_errors(manifest, scene_dir)
-    for obj in manifest.get("objects", []):
-        drop = obj.get("drop_test") or {}
-        failed = failed_checks(obj.get("checks") or {})
-        cand = obj.get("candidate")
-        name = cand.get("name") if isinstance(cand, dict) else cand
-        table.add_row(f"object {obj['id']}", f"{obj.get('status')} · candidate {name} · placed "
-                      f"{100 * errors.get(obj['id'], float('nan')):.1f} cm from truth · drop test "
+    for obj in manifest.get("objects", ()):
+        drop = obj.drop_test or {}
+        failed = obj.failed_checks
+        table.add_row(f"object {obj.id}", f"{obj.status} · candidate {candidate_name(obj)} · placed "
+                      f"{100 * errors.get(obj.id, float('nan')):.1f} cm from truth · drop test "
                       f"{'stable' if drop.get('stable') else 'unstable' if drop else '—'}"
                       + (f" · failed checks {failed}" if failed else ""))
-    background = manifest.get("background") or {}
-    table.add_row("background", f"{background.get('removed', '—')} Gaussians removed, "
-                                f"{background.get('filled', '—')} filled")
+    background = manifest.background()
+    table.add_row("background", "—" if background is None else
+                  f"{background.removed} Gaussians removed, {background.filled} filled")
     if scores is not None:
         table.add_row("background vs truth", f"camera {camera}: uncovered region "
                       f"({scores['region_px']} px) {scores['uncovered']:.1f} dB PSNR (removal alone "
@@ -234,6 +229,6 @@ def _summary_table(out: Path, scene, scene_dir: Path, convert_dir: Path, media: 
     return table
 
 
-def _stage_timings(manifest: dict) -> dict[str, float]:
+def _stage_timings(manifest: Manifest) -> dict[str, float]:
     """The conversion's own top-level stage timings (``observe``, ``objects``, ...)."""
-    return {f"  {k}": float(v) for k, v in (manifest.get("timings") or {}).items() if "." not in k and k != "convert"}
+    return {f"  {k}": float(v) for k, v in manifest.timings.values.items() if "." not in k and k != "convert"}

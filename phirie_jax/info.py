@@ -13,7 +13,8 @@ from phirie_jax import layout
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.gaussian_checks import degenerate_counts
 from phirie_jax.io.ply import ply_element_counts, read_gaussian_ply
-from phirie_jax.manifest import ACCEPTED, UNVERIFIED
+from phirie_jax.manifest import UNVERIFIED, Manifest
+from phirie_jax.records import ObjectRecord
 from phirie_jax.types import GaussianSplatData, SceneInput
 
 
@@ -83,7 +84,7 @@ def scene_facts(scene: SceneInput) -> dict:
     else:
         facts["cameras"] = None
     if scene.sparse_points is not None:
-        facts["sparse_points"] = int(len(scene.sparse_points))
+        facts["sparse_points"] = len(scene.sparse_points)
     facts["surface_mesh"] = _mesh_facts(scene.surface_mesh) if scene.surface_mesh else None
     if scene.surface_mesh is not None:
         facts["surface_mesh"]["path"] = _relative(scene.surface_mesh, scene.root)
@@ -105,29 +106,33 @@ def scene_facts(scene: SceneInput) -> dict:
 STATUS_COLOURS = {"accepted": "green", "unverified": "yellow", "rejected": "red", "failed": "red"}
 
 
-def status_words(entry: dict) -> str:
+def status_words(entry: ObjectRecord) -> str:
     """An object's status with what it failed: ``unverified (failed registration)``."""
-    status = str(entry.get("status") or "?")
-    if status == UNVERIFIED and entry.get("unresolved_checks"):
-        return f"{status} (failed {', '.join(entry['unresolved_checks'])})"
-    return status
+    return status_text(entry.status, entry.unresolved_checks)
 
 
-def candidate_name(entry: dict) -> str:
+def status_text(status: str, failed_checks: list[str] | None) -> str:
+    """``status_words`` of a status and the checks an unverified object failed."""
+    if status == UNVERIFIED and failed_checks:
+        return f"{status} (failed {', '.join(failed_checks)})"
+    return str(status)
+
+
+def candidate_name(entry: ObjectRecord) -> str:
     """The chosen candidate's name (the manifest holds a name, or a record with one)."""
-    candidate = entry.get("candidate")
+    candidate = entry.candidate
     return str(candidate.get("name") if isinstance(candidate, dict) else candidate or "—")
 
 
-def chosen_scores(entry: dict) -> dict:
+def chosen_scores(entry: ObjectRecord) -> dict:
     """The scores of the chosen candidate among those tried (empty when not recorded)."""
     name = candidate_name(entry)
-    return next((c.get("scores") or {} for c in entry.get("candidates") or [] if c.get("name") == name), {})
+    return next((c.get("scores") or {} for c in entry.candidates if c.get("name") == name), {})
 
 
-def drop_verdict(entry: dict) -> str:
+def drop_verdict(entry: ObjectRecord) -> str:
     """The drop test in words: stable / unstable with the drift, or why it was not run."""
-    drop = entry.get("drop_test") or {}
+    drop = entry.drop_test or {}
     if not drop:
         return "not run"
     if drop.get("error"):
@@ -142,19 +147,19 @@ def _reasons(entries: list[dict]) -> str:
     return "; ".join(f"{reason} (×{n})" if n > 1 else reason for reason, n in counts.most_common(4))
 
 
-def _unverified(entry: dict) -> str:
+def _unverified(entry: ObjectRecord) -> str:
     """``5: failed registration, settling`` for an unverified object."""
-    return f"{entry['id']}: failed {', '.join(entry.get('unresolved_checks') or []) or 'a check'}"
+    return f"{entry.id}: failed {', '.join(entry.unresolved_checks or []) or 'a check'}"
 
 
-def outcome_lines(manifest: dict) -> list[str]:
+def outcome_lines(manifest: Manifest) -> list[str]:
     """What a conversion made, and why when it made nothing (the CLI prints these lines)."""
     lines = []
     failed = manifest.get("failed_stage")
     if failed:
         lines.append(f"stage {failed['stage']} failed: {failed['error']}")
     observe = manifest.get("observe") or {}
-    if "instances" in manifest and not manifest["instances"]:
+    if manifest.get("instances") == ():
         clusters = (observe.get("auto") or {}).get("rejected_clusters") or []
         views = (observe.get("masks") or {}).get("failed_views") or []
         why = [text for text in (_reasons(clusters) if clusters else "",
@@ -162,20 +167,20 @@ def outcome_lines(manifest: dict) -> list[str]:
                                  if observe.get("rejected_proposals") else "",
                                  f"{len(views)} views gave no masks: {_reasons(views)}" if views else "") if text]
         lines.append("no object instance found: " + ("; ".join(why) or "no mask labels any pixel"))
-    usd = (manifest.get("physics") or {}).get("usd") or {}
+    physics = manifest.physics()
+    usd = (physics.usd if physics is not None else None) or {}
     if usd.get("reason"):
         lines.append(f"scene.usda not written: {usd['reason']}")
     objects = manifest.get("objects")
     if objects:
-        accepted = [o for o in objects if o.get("status") == ACCEPTED]
-        unverified = [o for o in objects if o.get("status") == UNVERIFIED]
-        if accepted or unverified:
+        accepted, kept = manifest.accepted_objects(), manifest.kept_objects()
+        unverified = [o for o in kept if not o.accepted]
+        if kept:
             lines.append(f"{len(accepted)} of {len(objects)} objects accepted" + (
                 f", {len(unverified)} kept unverified ({'; '.join(_unverified(o) for o in unverified)})"
                 if unverified else ""))
         else:
-            lines.append("no object kept: " + "; ".join(f"{o['id']}: {o.get('reason') or o.get('status')}"
-                                                        for o in objects))
+            lines.append("no object kept: " + "; ".join(f"{o.id}: {o.reason or o.status}" for o in objects))
     return lines
 
 
@@ -212,39 +217,36 @@ def converted_facts(out_dir: Path) -> dict:
     """A JSON-ready summary of a converted folder: its state (``conversion_state``), scene, frame,
     outcome, each object's record, the background, the files written (bytes; "not written" when
     absent) and the stages' seconds."""
-    from phirie_jax.manifest import Manifest
-
     out_dir = Path(out_dir)
     manifest = Manifest.load_or_create(out_dir)
-    data = manifest.data
     state = conversion_state(out_dir, manifest)
-    frame = data.get("frame") or {}
-    background = data.get("background") or {}
-    objects = [{"id": o["id"], "status": o.get("status"), "failed_checks": o.get("unresolved_checks") or [],
-                "candidate": candidate_name(o), "drop_test": drop_verdict(o), "mass": o.get("mass"),
-                "mass_source": ((o.get("physics") or {}).get("priors") or {}).get("mass_source"),
-                "friction": o.get("friction"),
-                "parts": len(o.get("collision") or []) or None,
-                "reason": None if o.get("status") == ACCEPTED else o.get("reason")}
-               for o in data.get("objects") or []]
+    frame = manifest.frame()
+    background = manifest.background()
+    objects = [{"id": o.id, "status": str(o.status), "failed_checks": o.unresolved_checks or [],
+                "candidate": candidate_name(o), "drop_test": drop_verdict(o), "mass": o.mass,
+                "mass_source": ((o.physics or {}).get("priors") or {}).get("mass_source"),
+                "friction": o.friction, "parts": len(o.collision) or None,
+                "reason": None if o.accepted else o.reason}
+               for o in manifest.get("objects", ())]
     files = {name: (out_dir / name).stat().st_size if (out_dir / name).is_file() else None
              for name in CONVERTED_FILES}
-    usd = (data.get("physics") or {}).get("usd") or {}
+    physics = manifest.physics()
+    usd = (physics.usd if physics is not None else None) or {}
     return {
         "root": str(out_dir),
         "state": state,
         "stages": manifest.stage_status(),
-        "scene": (data.get("scene") or {}).get("path"),
-        "frame": None if not frame else (f"{frame.get('scale', 1.0):.6g} m per capture unit "
-                                         f"({frame.get('scale_source')}); up from {frame.get('up_source')}"),
-        "outcome": ([] if state.startswith("converted") else [state]) + outcome_lines(data),
+        "scene": (manifest.get("scene") or {}).get("path"),
+        "frame": None if frame is None else (f"{1.0 if frame.scale is None else frame.scale:.6g} m per capture unit "
+                                             f"({frame.scale_source}); up from {frame.up_source}"),
+        "outcome": ([] if state.startswith("converted") else [state]) + outcome_lines(manifest),
         "objects": objects,
-        "background": None if not background else (
-            f"{background.get('source_gaussians')} → {background.get('gaussians')} Gaussians "
-            f"({background.get('removed')} removed, {background.get('filled')} filled)"),
+        "background": None if background is None else (
+            f"{background.source_gaussians} → {background.gaussians} Gaussians "
+            f"({background.removed} removed, {background.filled} filled)"),
         "files": {name: size if size is not None else ("not written: " + usd["reason"]
                                                         if name == layout.SCENE_USD and usd.get("reason") else
                                                         "not written")
                   for name, size in files.items()},
-        "timings_s": {k: round(float(v), 1) for k, v in (data.get("timings") or {}).items() if "." not in k},
+        "timings_s": {k: round(float(v), 1) for k, v in manifest.timings.values.items() if "." not in k},
     }

@@ -1,6 +1,8 @@
 """The whole conversion: scene folder → interactive scene folder.
 
-Stages run in the order of ``STAGES``, each reading and extending ``OUT/manifest.json``:
+Stages run in the order of ``STAGES``; each takes the records of the stages before it and returns
+its own (``phirie_jax.records``), which the run holds in one ``Manifest`` and writes to
+``OUT/manifest.json`` after each stage:
 frame (up and metres: the capture moved into a metric, +z-up world) → observe (instances)
 → objects (assets) → background (removal, inpainting targets, fill) → physics (collision,
 MJCF/URDF, drop tests). The physics stage's collision starts in CoACD's worker processes as soon
@@ -48,7 +50,7 @@ from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.io.output_folder import check_inputs_outside, check_output_folder, locked
 from phirie_jax.io.scene import find_gaussians, load_scene
 from phirie_jax.io.transforms_json import write_transforms_json
-from phirie_jax.manifest import COMPLETE, FAILED, OUTDATED, PENDING, RUNNING, STAGE_NAMES, Manifest, is_kept
+from phirie_jax.manifest import COMPLETE, FAILED, OUTDATED, PENDING, RUNNING, STAGE_NAMES, Manifest
 from phirie_jax.observe.config import ObserveConfig
 from phirie_jax.observe.masks import check_mask_source, file_mask_ids
 from phirie_jax.progress import task
@@ -91,6 +93,7 @@ class Run:
     prompts: tuple = ()          # checked prompts (observe.prompts.Prompt): the mask source when given
     collision: Any = None        # physics.stage.CollisionJob started ahead of the physics stage, or None
     kept: frozenset | None = None  # ids of the objects kept when it started (the background assumes they stay)
+    manifest: Manifest | None = None  # the stages' records so far (written after each stage)
 
     @functools.cached_property
     def scene(self) -> SceneInput:
@@ -105,9 +108,8 @@ KNOWN_SIZE_ROUNDS = 3         # at most this many observations after the first
 
 def _record_frame(run: Run) -> None:
     """The manifest's ``frame`` and the cameras in the world frame (``transforms.json``)."""
-    manifest = Manifest.load_or_create(run.out_dir)
-    manifest.set("frame", run.frame.record())
-    manifest.write()
+    run.manifest.set("frame", run.frame.record())
+    run.manifest.write()
     if run.scene.cameras:
         write_transforms_json(run.out_dir / layout.CAMERAS, list(run.scene.cameras))
 
@@ -115,12 +117,10 @@ def _record_frame(run: Run) -> None:
 def _frame(run: Run) -> Run:
     """Up and metres per unit: given on the command line or declared by the scene folder
     (``frame.json``; ``run.frame_config`` holds both), else estimated."""
-    manifest = Manifest.load_or_create(run.out_dir)
-    with manifest.timed("frame"):
+    with run.manifest.timed("frame"):
         frame = resolve_frame(run.capture, run.frame_config)
     for warning in frame.warnings:  # a frame whose cues disagree, or that rests on one, is not silent
         print(f"phirie: warning: frame: {warning}", file=sys.stderr, flush=True)
-    manifest.write()
     run = dataclasses.replace(run, frame=frame)
     _record_frame(run)
     return run
@@ -129,12 +129,12 @@ def _frame(run: Run) -> Run:
 def _known_size(run: Run) -> Run:
     """The frame rescaled so ``--known-size``'s instance has the given longest side."""
     ident, metres = run.frame_config.known_size_of()
-    instances = Manifest.load_or_create(run.out_dir).instances()
-    record = next((i for i in instances if i["id"] == ident), None)
+    instances = run.manifest.instances()
+    record = next((i for i in instances if i.id == ident), None)
     if record is None:
         raise SceneInputError(None, "--known-size", f"instance {ident} was not observed (observed: "
-                              f"{', '.join(str(i['id']) for i in instances) or 'none'})")
-    with np.load(run.out_dir / record["points"]) as data:
+                              f"{', '.join(str(i.id) for i in instances) or 'none'})")
+    with np.load(run.out_dir / record.points) as data:
         points = data["points"].astype(np.float64)
     run = dataclasses.replace(run, frame=with_known_size(run.frame, points, ident, metres))
     _record_frame(run)
@@ -145,35 +145,49 @@ def _observe(run: Run) -> Run:
     """Observation in the world frame; with ``--known-size`` the frame is rescaled from the named
     instance's observed size, and the scene observed again while that changes the scale (at most
     ``KNOWN_SIZE_ROUNDS`` times; the frame recorded is the one the instances were observed at)."""
-    from phirie_jax.observe.stage import run_observe
-
-    run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=run.scene,
-                prompts=run.prompts)
+    _observed(run)
     if run.frame_config.known_size is None:
         return run
     for _ in range(KNOWN_SIZE_ROUNDS):  # an instance observed at a wrong scale measures short: again
         rescaled = _known_size(run)
         if abs(rescaled.frame.scale / run.frame.scale - 1) <= KNOWN_SIZE_TOLERANCE:
             return rescaled
-        run_observe(run.capture.root, run.out_dir, run.config.observe, masks=run.masks, scene=rescaled.scene,
-                    prompts=run.prompts)
+        _observed(rescaled)
         run = rescaled
     return run
 
 
+def _observed(run: Run) -> None:
+    """The instances observed in ``run.scene`` into the manifest."""
+    from phirie_jax.observe.stage import observe
+
+    m = run.manifest
+    instances, record = observe(run.capture.root, run.out_dir, run.config.observe, run.masks, run.scene,
+                                run.prompts, m.frame(), m.timings)
+    m.set("instances", instances)
+    m.set("observe", record)
+
+
 def _objects(run: Run) -> Run:
-    from phirie_jax.construct.objects.stage import run_objects
+    from phirie_jax.construct.objects.stage import construct_objects
     from phirie_jax.construct.physics.settling import candidate_settler
 
-    run_objects(run.capture.root, run.out_dir, run.config.objects, scene=run.scene,
-                settle=candidate_settler(run.config.physics))
+    m = run.manifest
+    objects, record = construct_objects(m.instances(), m.up(), run.scene, run.out_dir, run.config.objects,
+                                        candidate_settler(run.config.physics), m.observed_surface(), m.timings)
+    m.set("objects", objects)
+    m.set("construct", record)
     return run
 
 
 def _physics(run: Run) -> Run:
-    from phirie_jax.construct.physics.stage import run_physics
+    from phirie_jax.construct.physics.stage import physics
 
-    run_physics(run.capture.root, run.out_dir, run.config.physics, collision=run.collision)
+    m = run.manifest
+    objects, record = physics(m.objects(), m.categories(), m.up(), m.surface_paths(), run.out_dir,
+                              run.config.physics, run.collision, m.timings)
+    m.set("objects", objects)
+    m.set("physics", record)
     return run
 
 
@@ -183,9 +197,10 @@ def _start_collision(run: Run) -> tuple[Run, contextlib.AbstractContextManager]:
     is left to the physics stage, which meets its error again and records it as its failure."""
     from phirie_jax.construct.physics.stage import start_collision
 
-    run = dataclasses.replace(run, kept=_accepted_ids(run.out_dir))
+    run = dataclasses.replace(run, kept=_kept_ids(run.manifest))
     try:
-        collision = start_collision(run.out_dir, run.config.physics)
+        collision = start_collision(run.manifest.objects(), run.manifest.categories(), run.out_dir,
+                                    run.config.physics)
     except Exception:  # noqa: BLE001 — the physics stage meets it again and records it as its failure
         return run, contextlib.nullcontext()
     return dataclasses.replace(run, collision=collision), collision
@@ -193,13 +208,16 @@ def _start_collision(run: Run) -> tuple[Run, contextlib.AbstractContextManager]:
 
 def _background_again(run: Run) -> tuple[str, ...]:
     """The background again when physics failed an object the background removed as kept."""
-    return ("background",) if run.kept is not None and _accepted_ids(run.out_dir) != run.kept else ()
+    return ("background",) if run.kept is not None and _kept_ids(run.manifest) != run.kept else ()
 
 
 def _background(run: Run) -> Run:
-    from phirie_jax.construct.background.stage import run_background
+    from phirie_jax.construct.background.stage import construct_background
 
-    run_background(run.capture.root, run.out_dir, run.config.background, scene=run.scene)
+    m = run.manifest
+    m.set("background", construct_background(m.objects(), m.get("instances", ()), m.up(), m.support_records(),
+                                             run.capture.root, run.out_dir, run.config.background, run.scene,
+                                             m.timings))
     return run
 
 
@@ -226,7 +244,7 @@ def _run_stage(name: str, stage: Callable[[Run], Run], run: Run, progress, creat
     this conversion created (no partial output behind)."""
     if progress is not None:
         progress(name)
-    _mark(run.out_dir, name, RUNNING)
+    _mark(run.manifest, name, RUNNING)
     try:
         with task(name):
             run = stage(run)
@@ -234,23 +252,23 @@ def _run_stage(name: str, stage: Callable[[Run], Run], run: Run, progress, creat
         if created is not None:
             shutil.rmtree(created, ignore_errors=True)
         else:
-            _failed(run.out_dir, name, err)
+            _failed(run.manifest, name, err)
         raise
     except Exception as err:  # noqa: BLE001 — recorded, then raised as this stage's failure
-        _failed(run.out_dir, name, err)
+        _failed(run.manifest, name, err)
         raise StageError(name, err) from err
-    _mark(run.out_dir, name, COMPLETE)
+    _mark(run.manifest, name, COMPLETE)
     return run
 
 
-def _mark(out_dir: Path, name: str, status: str) -> None:
-    manifest = Manifest.load_or_create(out_dir)
+def _mark(manifest: Manifest, name: str, status: str) -> None:
+    """The stage's status, and the records the stages returned so far, written."""
     manifest.mark_stage(name, status)
     manifest.write()
 
 
-def _accepted_ids(out_dir: Path) -> frozenset:
-    return frozenset(e["id"] for e in Manifest.load_or_create(out_dir).get("objects") or [] if is_kept(e))
+def _kept_ids(manifest: Manifest) -> frozenset:
+    return frozenset(o.id for o in manifest.kept_objects())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -377,15 +395,16 @@ def _clean(out_dir: Path) -> None:
         remove_temporaries(folder)
 
 
-def _start(scene: SceneInput, out_dir: Path, selected: list[str], inputs: dict) -> None:
-    """The output folder's manifest with the scene it converts, what it is made from (``inputs``,
-    ``provenance.inputs_record``) and the stages this run will run; a stage after the first of
-    them that this run leaves alone was made from what this run replaces: outdated."""
+def _start(scene: SceneInput, out_dir: Path, selected: list[str], inputs: dict) -> Manifest:
+    """The output folder's manifest (the one place a conversion reads it) with the scene it
+    converts, what it is made from (``inputs``, ``provenance.inputs_record``) and the stages this
+    run will run; a stage after the first of them that this run leaves alone was made from what
+    this run replaces: outdated. The run holds it from here on and writes it after each stage."""
     manifest = Manifest.load_or_create(out_dir)
     manifest.set("scene", {"path": str(scene.root), "layout": scene.layout,
                            "gaussians": str(scene.gaussians_path), "cameras": len(scene.cameras)})
     manifest.set(provenance.SECTION, inputs)
-    manifest.data.pop("failed_stage", None)
+    manifest.pop("failed_stage")
     status = manifest.stage_status()
     first = min(STAGE_NAMES.index(n) for n in selected)
     for name in STAGE_NAMES[first:]:
@@ -394,10 +413,10 @@ def _start(scene: SceneInput, out_dir: Path, selected: list[str], inputs: dict) 
         elif status[name] == COMPLETE:
             manifest.mark_stage(name, OUTDATED)
     manifest.write()
+    return manifest
 
 
-def _failed(out_dir: Path, stage: str, err: BaseException) -> None:
-    manifest = Manifest.load_or_create(out_dir)
+def _failed(manifest: Manifest, stage: str, err: BaseException) -> None:
     manifest.set("failed_stage", {"stage": stage, "error": f"{type(err).__name__}: {err}"})
     manifest.mark_stage(stage, FAILED)
     manifest.write()
@@ -457,9 +476,9 @@ def run_convert(scene_dir: str | Path, out_dir: str | Path, config: ConvertConfi
             check_output_folder(out_dir, scene_root)   # as this run holds it
             _clean(out_dir)
             selected = [n for n in STAGES if stages is None or n == "frame" or n in stages]
-            _start(scene, run.out_dir, selected, inputs)
+            run = dataclasses.replace(run, manifest=_start(scene, run.out_dir, selected, inputs))
             run = _run_stages(run, selected, progress, created)
-            manifest = Manifest.load_or_create(run.out_dir)
+            manifest = run.manifest
             manifest.record_timing("convert", time.perf_counter() - start)
             manifest.write()
     return manifest.data

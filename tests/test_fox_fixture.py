@@ -12,6 +12,7 @@ from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
 from phirie_jax.info import outcome_lines
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.scene import load_scene
+from phirie_jax.manifest import Manifest
 from phirie_jax.observe.box_prompt import BoxPrompt
 from phirie_jax.observe.masks import read_label_png
 from phirie_jax.pipeline import ConvertConfig, run_convert
@@ -70,7 +71,7 @@ def test_automatic_masks_say_why_nothing_stands_on_a_support(tmp_path):
     manifest = run_convert(FOX, tmp_path / "out", QUICK, masks="auto")
     assert manifest["instances"] == [] and manifest["objects"] == []
     assert manifest["frame"]["scale_source"].startswith("prior: ") and manifest["frame"]["scale_uncertainty"] > 1
-    lines = outcome_lines(manifest)
+    lines = outcome_lines(Manifest.load(tmp_path / "out"))
     assert any(line.startswith("no object instance found: no support plane") for line in lines), lines
 
 

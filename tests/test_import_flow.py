@@ -18,7 +18,7 @@ LAYERS = (
     ("phirie_jax.layout", 1),
     ("phirie_jax.ranges", 1), ("phirie_jax.progress", 1), ("phirie_jax.compile_count", 1),
     ("phirie_jax.io", 2),
-    ("phirie_jax.manifest", 3), ("phirie_jax.render", 3), ("phirie_jax.provenance", 3),
+    ("phirie_jax.manifest", 3), ("phirie_jax.records", 3), ("phirie_jax.render", 3), ("phirie_jax.provenance", 3),
     ("phirie_jax.frame", 4), ("phirie_jax.synthetic", 4), ("phirie_jax.synthetic.fitted", 4), ("phirie_jax.capture", 4),
     ("phirie_jax.observe", 5),
     ("phirie_jax.construct.objects", 6),

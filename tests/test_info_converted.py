@@ -12,6 +12,8 @@ import pytest
 from phirie_jax import layout
 from phirie_jax.cli import main
 from phirie_jax.info import outcome_lines
+from phirie_jax.manifest import Manifest
+from phirie_jax.records import ObjectRecord
 from tests.fixtures.box_scene import BOXES, converted_folder
 
 
@@ -45,7 +47,7 @@ def test_version(capsys):
 def test_a_missing_pxr_is_one_line_that_says_how(folder):
     manifest = json.loads((folder / layout.MANIFEST).read_text())
     manifest["physics"]["usd"] = {"path": None, "reason": "pxr is not importable (pip install 'phirie_jax[usd]')"}
-    lines = [line for line in outcome_lines(manifest) if "scene.usda" in line]
+    lines = [line for line in outcome_lines(Manifest.from_json(folder, manifest)) if "scene.usda" in line]
     assert lines == ["scene.usda not written: pxr is not importable (pip install 'phirie_jax[usd]')"]
 
 
@@ -71,7 +73,7 @@ def test_an_object_kept_with_a_failed_check_is_unverified_everywhere(folder, tmp
     assert "unverified (failed registration)" in capsys.readouterr().out
     write_report(copy, ReportConfig(views=1, width=32, thumbnail=16))
     assert '<td class="status-unverified">unverified (failed registration)</td>' in (copy / layout.REPORT).read_text()
-    assert object_markdown(first).startswith("🟡 **unverified (failed registration)**")
+    assert object_markdown(ObjectRecord.from_json(first)).startswith("🟡 **unverified (failed registration)**")
 
 
 @pytest.mark.parametrize("value", ["3", "x=1", "3=-0.2", "3=nan"])

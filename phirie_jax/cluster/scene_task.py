@@ -34,7 +34,7 @@ from pathlib import Path
 from phirie_jax import layout, provenance
 from phirie_jax.errors import ConfigValueError, NativeLibraryError, OptionError, SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig
-from phirie_jax.manifest import ACCEPTED, FAILED_OBJECT, REJECTED, UNVERIFIED, Manifest
+from phirie_jax.manifest import Manifest, ObjectStatus
 from phirie_jax.pipeline import ConvertConfig
 
 CONVERTED, SKIPPED, FAILED = "converted", "skipped", "failed"
@@ -198,25 +198,23 @@ def manifest_facts(out: Path) -> dict:
     figures, frame source, the conversion's own seconds (empty values when it has no manifest)."""
     facts: dict = {"objects": None, "drop_tests": None, "background": None, "frame": None, "convert_seconds": None}
     try:
-        data = Manifest.load_or_create(out).data if (Path(out) / layout.MANIFEST).is_file() else {}
+        manifest = Manifest.load_or_create(out) if (Path(out) / layout.MANIFEST).is_file() else Manifest(out)
     except (SceneInputError, OSError):
-        data = {}
-    objects = data.get("objects")
+        manifest = Manifest(out)
+    objects = manifest.get("objects")
     if objects is not None:
-        facts["objects"] = {s: sum(o.get("status") == s for o in objects)
-                            for s in (ACCEPTED, UNVERIFIED, REJECTED, FAILED_OBJECT)}
-        drops = [o.get("drop_test") for o in objects if o.get("drop_test")]
+        facts["objects"] = {s: sum(o.status == s for o in objects) for s in ObjectStatus}
+        drops = [o.drop_test for o in objects if o.drop_test]
         facts["drop_tests"] = {"tested": len(drops), "stable": sum(bool(d.get("stable")) for d in drops),
                                "not_measured": sum(bool(d.get("error")) for d in drops)}
-    background = data.get("background")
-    if background:
-        facts["background"] = {k: background.get(k) for k in ("source_gaussians", "gaussians", "removed", "filled")}
-    frame = data.get("frame")
-    if frame:
-        facts["frame"] = {"scale": frame.get("scale"), "scale_source": frame.get("scale_source"),
-                          "up_source": frame.get("up_source")}
-    facts["convert_seconds"] = (data.get("timings") or {}).get("convert")
-    failed = data.get("failed_stage")
+    background = manifest.background()
+    if background is not None:
+        facts["background"] = {k: getattr(background, k) for k in ("source_gaussians", "gaussians", "removed", "filled")}
+    frame = manifest.frame()
+    if frame is not None:
+        facts["frame"] = {"scale": frame.scale, "scale_source": frame.scale_source, "up_source": frame.up_source}
+    facts["convert_seconds"] = manifest.timings.values.get("convert")
+    failed = manifest.get("failed_stage")
     if failed:
         facts["failed_stage"] = f"stage {failed.get('stage')} failed: {failed.get('error')}"
     return facts

@@ -24,7 +24,6 @@ MJCF's and those on bodies (the robot's ``wrist``), by name, posed from the curr
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import jax
@@ -35,10 +34,10 @@ from kernels.gaussians import Gaussians, Sim3, concatenate, transform_bodies
 from phirie_jax import layout
 from phirie_jax.construct.physics.body import body_name
 from phirie_jax.errors import SceneInputError
-from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.interact.robot.appearance import robot_gaussians
+from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.transforms_json import read_transforms_json
-from phirie_jax.manifest import is_kept
+from phirie_jax.manifest import Manifest
 from phirie_jax.rotations import matrix_to_quat, pose_matrix
 from phirie_jax.types import Camera, GaussianSplatData
 
@@ -160,7 +159,7 @@ class Environment:
         manifest_path = out_dir / "manifest.json"
         if not manifest_path.is_file():
             raise SceneInputError(manifest_path, None, "missing (expected a `phirie convert` output folder)")
-        manifest = json.loads(manifest_path.read_text())
+        bodies = [o for o in Manifest.load(out_dir).kept_objects() if o.visual and o.collision]
         spec = load_spec(out_dir, with_pusher)
         handle = None
         if robot is not None:
@@ -168,23 +167,19 @@ class Environment:
             from phirie_jax.interact.robot.setup import merge_robot
 
             config = robot if isinstance(robot, RobotConfig) else RobotConfig(model=str(robot))
-            accepted = [int(o["id"]) for o in manifest.get("objects", [])
-                        if is_kept(o) and o.get("visual") and o.get("collision")]
             model, handle = merge_robot(spec, config, out_dir / layout.SCENE_MJCF,
-                                        {i: body_name(i) for i in accepted})
+                                        {o.id: body_name(o.id) for o in bodies})
         else:
             model = _compile(spec, out_dir)
         if not (out_dir / layout.BACKGROUND).is_file():
             raise SceneInputError(out_dir / layout.BACKGROUND, None, "missing (expected the background stage's PLY)")
         background = read_gaussian_ply(out_dir / layout.BACKGROUND)
         objects = []
-        for obj in manifest.get("objects", []):
-            if not is_kept(obj) or not obj.get("visual") or not obj.get("collision"):
-                continue
-            splats = read_gaussian_ply(out_dir / obj["visual"])
+        for obj in bodies:
+            splats = read_gaussian_ply(out_dir / obj.visual)
             if splats.sh_degree != background.sh_degree:
                 splats = _match_degree(splats, background.sh_degree)
-            objects.append((int(obj["id"]), np.asarray(obj["pose"], np.float64), splats))
+            objects.append((obj.id, np.asarray(obj.pose, np.float64), splats))
         env = cls(out_dir, model, background, objects, load_cameras(out_dir), robot=handle, spec=spec)
         env.with_pusher = with_pusher
         return env

@@ -1,9 +1,10 @@
-"""Scene Observation, end to end: ``run_observe(scene_dir, out_dir, config, masks)``.
+"""Scene Observation, end to end: ``observe(scene_dir, out_dir, config, masks, scene, prompts, frame)``
+(``run_observe(scene_dir, out_dir, ...)`` on an output folder alone).
 
 Outputs (paths relative to ``out_dir``):
 
-- ``manifest.json``: ``instances`` (docs/architecture.md "Contracts": ``id``, ``category``, ``views``
-  = supporting camera indices, ``num_points``, ``bounds``, ``source``; plus ``points``,
+- returned, the manifest's sections: ``instances`` (``records.InstanceRecord``;
+  docs/architecture.md "Contracts": ``id``, ``category``, ``views`` = supporting camera indices, ``num_points``, ``bounds``, ``source``; plus ``points``,
   ``confidence``, ``view_names``, ``support`` (``observe.support``: height in the gravity
   frame, source, hits, normal), ``points_dropped`` (by reason)), ``observe`` (surface used and how it was made, mask
   source, failed views, rejected proposals and clusters, the config) and
@@ -38,7 +39,7 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.frame.gravity import gravity_frame
 from phirie_jax.io.atomic import write_bytes
 from phirie_jax.io.scene import load_scene
-from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.manifest import Manifest, Timings, to_dict
 from phirie_jax.observe import auto as auto_mod
 from phirie_jax.observe.associate import associate
 from phirie_jax.observe.config import ObserveConfig
@@ -56,6 +57,7 @@ from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.observe.support import Support, find_support
 from phirie_jax.observe.support_fit import frame_support_plane
 from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
+from phirie_jax.records import FrameRecord, InstanceRecord, plain
 from phirie_jax.types import Camera, SceneInput
 
 
@@ -311,19 +313,19 @@ class _Lifted:
 
 
 def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Raycaster, config: ObserveConfig,
-                out_dir: Path, manifest: Manifest) -> _Lifted:
+                out_dir: Path, timings: Timings) -> _Lifted:
     """Each view's masks (made as they are asked for) lifted onto the surface; timings
     ``observe.masks`` and ``observe.lift``."""
     lifted, iterator = _Lifted(), iter(views)
     while True:
-        with manifest.timed("observe.masks"):
+        with timings.timed("observe.masks"):
             item = next(iterator, None)
         if item is None:
             return lifted
         if isinstance(item, ViewFailure):
             lifted.failures.append(item.as_dict())
             continue
-        with manifest.timed("observe.lift"):
+        with timings.timed("observe.lift"):
             lifted.mask_paths[item.view] = (_write_mask(out_dir, cameras[item.view], item.labels)
                                             if source in ("auto", "prompts") else item.path)
             found, dropped = lift_view(raycaster, cameras[item.view], item, config)
@@ -332,17 +334,17 @@ def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Rayc
 
 
 def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path,
-               manifest: Manifest, raycaster: Raycaster, supports: dict[int, Support] | None = None
+               timings: Timings, up: np.ndarray, raycaster: Raycaster, supports: dict[int, Support] | None = None
                ) -> tuple[list[dict], list[dict], list[dict]]:
     """Voxel association of the lifted proposals → (instance records, failed instances, rejected)."""
-    with manifest.timed("observe.associate"):
+    with timings.timed("observe.associate"):
         assoc = associate(lifted.proposals, config.voxel, config.overlap, config.min_views)
     groups = [(instance_id, [lifted.proposals[i] for i in idx]) for instance_id, idx in assoc.groups]
-    with manifest.timed("observe.consistency"):
-        kept = _consistent_points(groups, lifted.mask_paths, cameras, config, out_dir, manifest, raycaster, supports)
+    with timings.timed("observe.consistency"):
+        kept = _consistent_points(groups, lifted.mask_paths, cameras, config, out_dir, up, raycaster, supports)
     instances, failed = [], []
     rejected = [{k: v for k, v in r.items() if k != "proposal"} for r in assoc.rejected]
-    with manifest.timed("observe.write"):
+    with timings.timed("observe.write"):
         for (instance_id, members), (points, support, dropped) in zip(groups, kept):
             try:
                 record = instance_record(instance_id, members, points, support, dropped, lifted.mask_paths,
@@ -374,14 +376,14 @@ def _seen_too_little(record: dict, config: ObserveConfig) -> str | None:
 
 
 def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dict[int, str],
-                       cameras: tuple[Camera, ...], config: ObserveConfig, out_dir: Path, manifest: Manifest,
+                       cameras: tuple[Camera, ...], config: ObserveConfig, out_dir: Path, up: np.ndarray,
                        raycaster: Raycaster, supports: dict[int, Support] | None = None
                        ) -> list[tuple[np.ndarray, Support, dict]]:
     """Per instance (Q_i, its support, points dropped by reason): the lifted points seen from ≥
     ``min_views`` views, inside the instance's silhouette in ≥ ``silhouette_agreement`` of the
     views that judge them, and not on the support found under them (``supports``: an instance's
     support found before, e.g. under a prompt's object; else ``observe.support.find_support``)."""
-    frame = gravity_frame(manifest.up(), "scene frame")
+    frame = gravity_frame(up, "scene frame")
     thinned = [instance_points(instance_id, members, config) for instance_id, members in groups]
     agreement = (silhouette_agreement([p for p, _ in thinned], [m for _, m in groups], mask_paths, cameras, out_dir)
                  if config.silhouette_agreement > 0 else [np.full(len(p), np.nan) for p, _ in thinned])
@@ -401,19 +403,36 @@ def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dic
 
 def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
                 masks: str | Path | None = None, scene: SceneInput | None = None, prompts=()) -> dict:
-    """Run Scene Observation on a scene folder; write ``out_dir`` (see the module docstring).
+    """The observation stage on an output folder alone (``observe``; the folder's manifest read
+    and written): returns the manifest as a dict."""
+    manifest = Manifest.load_or_create(out_dir)
+    instances, record = observe(scene_dir, out_dir, config, masks, scene, prompts, manifest.frame(), manifest.timings)
+    manifest.set("instances", instances)
+    manifest.set("observe", record)
+    manifest.write()
+    return manifest.data
+
+
+def observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | None = None,
+            masks: str | Path | None = None, scene: SceneInput | None = None, prompts=(),
+            frame: FrameRecord | None = None, timings: Timings | None = None
+            ) -> tuple[tuple[InstanceRecord, ...], dict]:
+    """Run Scene Observation on a scene (``scene``, else the folder ``scene_dir``) in the world of
+    ``frame`` (the frame stage's record; None: +z up); writes its files in ``out_dir`` (see the
+    module docstring) and returns (the instances, the ``observe`` record).
 
     masks: "files" (mask PNGs or ScanNet++ annotations), "auto", or a folder of an external
     segmenter's per-image PNG + JSON; None = "files" when the scene has masks, else "auto".
     prompts: checked prompts (``observe.prompts.Prompt``; with masks None) make the masks:
-    prompt k is instance k.
-    Returns the manifest as a dict. Raises ``SceneInputError`` for unusable input as a
-    whole; a failing view or instance is recorded in the manifest and the rest goes on.
+    prompt k is instance k. timings: where the steps' times go (``observe``, ``observe.<step>``).
+    Raises ``SceneInputError`` for unusable input as a whole; a failing view or instance is
+    recorded and the rest goes on.
     """
     out_dir = Path(out_dir)
     config = config or ObserveConfig()
-    manifest = Manifest.load_or_create(out_dir)
-    with manifest.timed("observe"):
+    timings = timings if timings is not None else Timings()
+    up = frame.up_vector() if frame is not None else np.array([0.0, 0.0, 1.0])
+    with timings.timed("observe"):
         scene = scene or load_scene(scene_dir)
         cameras = scene.require_cameras()
         if prompts:
@@ -427,23 +446,20 @@ def run_observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfi
         if masks == "prompts":
             from phirie_jax.observe.prompt_masks import PromptMasks
 
-            with manifest.timed("observe.prompts"):
+            with timings.timed("observe.prompts"):
                 prompt_masks = PromptMasks.lift(scene, prompts, config, record, out_dir)
-        with manifest.timed("observe.surface"):
+        with timings.timed("observe.surface"):
             surface, surface_record = scene_surface(scene, config, out_dir, prompt_masks)
             raycaster = Raycaster(surface.vertices, surface.faces, config.working_width)
         record["surface"] = surface_record
-        with manifest.timed("observe.masks"):
-            views, source = mask_views(scene, masks, raycaster, config, record, manifest.up(), manifest.get("frame"),
-                                       prompt_masks)
-        lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, manifest)
-        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, manifest, raycaster,
+        with timings.timed("observe.masks"):
+            views, source = mask_views(scene, masks, raycaster, config, record, up,
+                                       None if frame is None else frame.to_json(), prompt_masks)
+        lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, timings)
+        instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, timings, up, raycaster,
                                                  prompt_masks.supports() if prompt_masks is not None else None)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),
                              "failed_views": lifted.failures},
                       proposals=len(lifted.proposals), rejected_proposals=lifted.rejected + rejected,
                       failed_instances=failed, config=to_dict(config))
-        manifest.set("instances", instances)
-        manifest.set("observe", record)
-    manifest.write()
-    return manifest.data
+    return tuple(InstanceRecord.from_json(plain(i)) for i in instances), plain(record)

@@ -21,6 +21,7 @@ from phirie_jax import layout
 from phirie_jax.info import candidate_name, chosen_scores, drop_verdict, outcome_lines, status_words
 from phirie_jax.io.atomic import write_text
 from phirie_jax.manifest import Manifest
+from phirie_jax.records import Check
 from phirie_jax.report.config import ReportConfig
 from phirie_jax.report.renders import ReportImages, render_images
 from phirie_jax.types import GaussianSplatData
@@ -64,19 +65,19 @@ def _img(image: np.ndarray | None, alt: str, scale: float = 1.0) -> str:
             f'height="{int(height * scale)}">')
 
 
-def _summary(manifest: dict) -> str:
+def _summary(manifest: Manifest) -> str:
     scene = manifest.get("scene") or {}
-    frame = manifest.get("frame") or {}
-    physics = manifest.get("physics") or {}
-    usd = physics.get("usd") or {}
+    frame = manifest.frame()
+    physics = manifest.physics()
+    usd = (physics.usd if physics is not None else None) or {}
     rows = [("scene", scene.get("path")), ("Gaussians", scene.get("gaussians")),
             ("cameras", scene.get("cameras")),
-            ("frame", f"{_number(frame.get('scale'), 6)} m per capture unit ({frame.get('scale_source')}), "
-                      f"up from {frame.get('up_source')}" if frame else None),
+            ("frame", f"{_number(frame.scale, 6)} m per capture unit ({frame.scale_source}), "
+                      f"up from {frame.up_source}" if frame is not None else None),
             ("outcome", "; ".join(outcome_lines(manifest)) or None),
-            ("simulation", f"{physics.get('scene', layout.SCENE_MJCF)}; "
+            ("simulation", f"{physics.scene or layout.SCENE_MJCF}; "
                            + (f"{usd['path']} (OpenUSD)" if usd.get("path") else f"no scene.usda: {usd.get('reason')}")
-             if physics else None)]
+             if physics is not None else None)]
     return "<table>" + "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in rows) + "</table>"
 
 
@@ -89,18 +90,17 @@ def _views(images: ReportImages) -> str:
             + rows + "</table>")
 
 
-def _checks(checks: dict) -> str:
+def _checks(checks: tuple[Check, ...]) -> str:
     out = []
-    for name, check in (checks or {}).items():
-        passed = check.get("passed")
-        css, mark = ("pass", "✔") if passed else ("fail", "✘") if passed is False else ("muted", "·")
-        out.append(f'<span class="{css}">{mark} {_e(name)}</span> {_number(check.get("value"))} '
-                   f'<span class="muted">/ {_number(check.get("threshold"))}</span>')
+    for check in checks:
+        css, mark = ("pass", "✔") if check.passed else ("fail", "✘") if check.passed is False else ("muted", "·")
+        out.append(f'<span class="{css}">{mark} {_e(check.name)}</span> {_number(check.value)} '
+                   f'<span class="muted">/ {_number(check.threshold)}</span>')
     return "<br>".join(out) or "—"
 
 
-def _objects(manifest: dict, images: ReportImages) -> str:
-    objects = manifest.get("objects") or []
+def _objects(manifest: Manifest, images: ReportImages) -> str:
+    objects = manifest.get("objects", ())
     if not objects:
         return '<p class="muted">no object was constructed</p>'
     head = ("<tr><th></th><th>id</th><th>status</th><th>candidate</th><th>scores</th><th>checks (value / threshold)"
@@ -109,27 +109,27 @@ def _objects(manifest: dict, images: ReportImages) -> str:
     for entry in objects:
         scores = ", ".join(f"{_e(k)} {_number(v)}" for k, v in chosen_scores(entry).items()
                            if isinstance(v, (int, float)) and not isinstance(v, bool)) or "—"
-        physics = "—" if entry.get("mass") is None else (
-            f"{_number(entry['mass'])} kg, μ {_number(entry.get('friction'))}<br>"
-            f"{len(entry.get('collision') or [])} convex parts")
-        thumb = images.thumbnails.get(entry["id"])
-        rows.append(f"<tr><td>{_img(thumb, 'thumbnail') if thumb is not None else ''}</td><td>{_e(entry['id'])}</td>"
-                    f"<td class=\"status-{_e(entry.get('status'))}\">{_e(status_words(entry))}</td>"
+        physics = "—" if entry.mass is None else (
+            f"{_number(entry.mass)} kg, μ {_number(entry.friction)}<br>"
+            f"{len(entry.collision)} convex parts")
+        thumb = images.thumbnails.get(entry.id)
+        rows.append(f"<tr><td>{_img(thumb, 'thumbnail') if thumb is not None else ''}</td><td>{_e(entry.id)}</td>"
+                    f"<td class=\"status-{_e(str(entry.status))}\">{_e(status_words(entry))}</td>"
                     f"<td>{_e(candidate_name(entry))}</td><td>{scores}</td>"
-                    f"<td>{_checks(entry.get('checks'))}</td><td>{_e(drop_verdict(entry))}</td><td>{physics}</td>"
-                    f"<td>{_e(entry.get('reason') if entry.get('status') != 'accepted' else '')}</td></tr>")
+                    f"<td>{_checks(entry.checks)}</td><td>{_e(drop_verdict(entry))}</td><td>{physics}</td>"
+                    f"<td>{_e(entry.reason if not entry.accepted else '')}</td></tr>")
     return "<table>" + head + "".join(rows) + "</table>"
 
 
-def _background(manifest: dict) -> str:
-    b = manifest.get("background")
-    if not b:
+def _background(manifest: Manifest) -> str:
+    b = manifest.background()
+    if b is None:
         return '<p class="muted">the background stage did not run</p>'
-    lines = [f"<p>{_e(b.get('source_gaussians'))} Gaussians in the capture → {_e(b.get('gaussians'))} in "
-             f"<code>{_e(b.get('path'))}</code>: {_e(b.get('removed'))} removed with the objects, "
-             f"{_e(b.get('filled'))} filled in where they stood.</p>"]
+    lines = [f"<p>{_e(b.source_gaussians)} Gaussians in the capture → {_e(b.gaussians)} in "
+             f"<code>{_e(b.path)}</code>: {_e(b.removed)} removed with the objects, "
+             f"{_e(b.filled)} filled in where they stood.</p>"]
     rows = []
-    for obj in b.get("objects") or []:
+    for obj in b.objects:
         removed = (obj.get("removed") or {}).get("union")
         disks = (obj.get("fill") or {}).get("disks")
         view = (obj.get("primary_view") or {}).get("name")
@@ -141,8 +141,8 @@ def _background(manifest: dict) -> str:
     return "".join(lines)
 
 
-def _timings(manifest: dict) -> str:
-    timings = manifest.get("timings") or {}
+def _timings(manifest: Manifest) -> str:
+    timings = manifest.timings.values
     rows = []
     for stage in dict.fromkeys(key.partition(".")[0] for key in timings):  # in the order they ran
         rows.append(f"<tr><th>{_e(stage)}</th><td class=num>{_number(timings.get(stage), 3)} s</td></tr>")
@@ -161,7 +161,7 @@ def _rollout(video: str | None, frames: list[np.ndarray]) -> str:
     return f'<div class="strip">{strip}</div>{link}'
 
 
-def report_html(manifest: dict, images: ReportImages, video: str | None = None,
+def report_html(manifest: Manifest, images: ReportImages, video: str | None = None,
                 frames: list[np.ndarray] = ()) -> str:
     """The page (module docstring). ``video``: the rollout's path relative to the report;
     ``frames``: rollout frames (uint8 RGB) to inline."""
@@ -196,7 +196,7 @@ def write_report(out_dir: str | Path, config: ReportConfig = ReportConfig(), sou
             video = record["video"]
         images = render_images(out_dir, config.views, config.width, config.thumbnail, config.background, source)
         manifest.set("report", {"path": layout.REPORT, "video": video})
-        write_text(out_dir / layout.REPORT, report_html(manifest.data, images, video, _strip(list(frames),
+        write_text(out_dir / layout.REPORT, report_html(manifest, images, video, _strip(list(frames),
                                                                                               config.filmstrip)))
     manifest.write()
     return out_dir / layout.REPORT

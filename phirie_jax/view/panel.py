@@ -1,11 +1,11 @@
-"""What the viewer's panel says about each object, as Markdown, from its ``manifest.json`` entry."""
+"""What the viewer's panel says about each object, as Markdown, from its record (``records.ObjectRecord``)."""
 
 from __future__ import annotations
 
 import math
 
 from phirie_jax.info import STATUS_COLOURS, candidate_name, chosen_scores, drop_verdict, status_words
-from phirie_jax.manifest import ACCEPTED
+from phirie_jax.records import ObjectRecord
 
 
 def _number(value, digits: int = 3) -> str:
@@ -16,29 +16,27 @@ def _number(value, digits: int = 3) -> str:
     return f"{value:.{digits}g}"
 
 
-def object_markdown(entry: dict) -> str:
+def object_markdown(entry: ObjectRecord) -> str:
     """The panel of one object: status, candidate and scores, checks, drop test, physics."""
-    marker = {"green": "🟢", "yellow": "🟡"}.get(STATUS_COLOURS.get(entry.get("status"), "red"), "🔴")
+    marker = {"green": "🟢", "yellow": "🟡"}.get(STATUS_COLOURS.get(entry.status, "red"), "🔴")
     lines = [f"{marker} **{status_words(entry)}** · candidate `{candidate_name(entry)}`"]
-    if entry.get("status") != ACCEPTED and entry.get("reason"):
-        lines.append(f"reason: {entry['reason']}")
+    if not entry.accepted and entry.reason:
+        lines.append(f"reason: {entry.reason}")
     scores = {k: v for k, v in chosen_scores(entry).items() if isinstance(v, (int, float))}
     if scores:
         lines.append("scores: " + ", ".join(f"{k} {_number(v)}" for k, v in scores.items()))
-    checks = entry.get("checks") or {}
-    if checks:
+    if entry.checks:
         lines += ["", "| check | value | threshold | |", "|---|---|---|---|"]
-        for name, check in checks.items():
-            passed = check.get("passed")
-            mark = "✔" if passed else "✘" if passed is False else "·"
-            lines.append(f"| {name} | {_number(check.get('value'))} | {_number(check.get('threshold'))} | {mark} |")
+        for check in entry.checks:
+            mark = "✔" if check.passed else "✘" if check.passed is False else "·"
+            lines.append(f"| {check.name} | {_number(check.value)} | {_number(check.threshold)} | {mark} |")
         lines.append("")
     lines.append(f"drop test: {drop_verdict(entry)}")
-    physics = entry.get("physics") or {}
+    physics = entry.physics or {}
     mass = physics.get("mass_properties") or {}
-    if entry.get("mass") is not None:
-        lines.append(f"mass {_number(entry['mass'])} kg · friction {_number(entry.get('friction'))}"
-                     + (f" · {len(entry.get('collision') or [])} convex parts" if entry.get("collision") else ""))
+    if entry.mass is not None:
+        lines.append(f"mass {_number(entry.mass)} kg · friction {_number(entry.friction)}"
+                     + (f" · {len(entry.collision)} convex parts" if entry.collision else ""))
     source = (physics.get("priors") or {}).get("mass_source")
     if source:
         lines.append(f"mass from: {source}")

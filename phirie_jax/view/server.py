@@ -68,7 +68,7 @@ class Viewer:
         self.out_dir = Path(out_dir)
         self.config = config
         self.manifest = Manifest.load_or_create(self.out_dir)
-        self.entries = {int(o["id"]): o for o in self.manifest.objects()}
+        self.entries = {o.id: o for o in self.manifest.objects()}
         env = Environment.load(self.out_dir)
         self.live = LiveScene(env, config)
         placed = splat_arrays(env.gaussians())        # background rows first, then each object's
@@ -112,14 +112,14 @@ class Viewer:
             placement0 = self.live.placements0[index]
             self._nodes[f"object {o.id}"] = scene.add_frame(f"/objects/{o.id}", show_axes=False)
             self._add_object_splats(o.id)
-            entry = self.entries.get(o.id) or {}
+            entry = self.entries.get(o.id)
             colour = tuple(int(255 * c) for c in palette_colour(index))
-            if entry.get("mesh") and layout.resolve(self.out_dir, entry["mesh"]).is_file():
-                vertices, faces = read_mesh(layout.resolve(self.out_dir, entry["mesh"]))
+            if entry is not None and entry.mesh and layout.resolve(self.out_dir, entry.mesh).is_file():
+                vertices, faces = read_mesh(layout.resolve(self.out_dir, entry.mesh))
                 self._nodes[f"mesh {o.id}"] = scene.add_mesh_simple(
                     f"/objects/{o.id}/mesh", placed_vertices(vertices, placement0), faces, color=MESH_COLOUR,
                     visible=False)
-            parts = [read_mesh(layout.resolve(self.out_dir, path)) for path in entry.get("collision") or []]
+            parts = [read_mesh(layout.resolve(self.out_dir, path)) for path in (entry.collision if entry else ())]
             parts = [(placed_vertices(vertices, placement0), faces) for vertices, faces in parts]
             for k, (vertices, faces) in enumerate(parts):
                 self._nodes[f"part {o.id} {k}"] = scene.add_mesh_simple(

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from phirie_jax.interact.environment import Environment
+from phirie_jax.records import ObjectRecord
 from phirie_jax.view.config import ViewConfig
 from phirie_jax.view.live import LiveScene
 from phirie_jax.view.panel import object_markdown
@@ -87,12 +88,12 @@ def test_a_drag_pulls_the_object_towards_the_pointer_and_release_lets_go(live):
 def test_the_panel_says_candidate_checks_drop_test_and_physics(folder):
     import json
 
-    entry = json.loads((folder / "manifest.json").read_text())["objects"][0]
+    entry = ObjectRecord.from_json(json.loads((folder / "manifest.json").read_text())["objects"][0])
     text = object_markdown(entry)
     assert "candidate `box`" in text and "registration" in text and "settling" in text
-    assert "drop test: stable" in text and f"mass {entry['mass']:.3g} kg" in text and "1 convex parts" in text
-    rejected = object_markdown({"id": 9, "status": "rejected", "reason": "registration residual too high",
-                                "candidate": None, "drop_test": None})
+    assert "drop test: stable" in text and f"mass {entry.mass:.3g} kg" in text and "1 convex parts" in text
+    rejected = object_markdown(ObjectRecord.from_json({"id": 9, "status": "rejected", "candidate": None,
+                                                       "reason": "registration residual too high", "drop_test": None}))
     assert "rejected" in rejected and "registration residual too high" in rejected and "not run" in rejected
 
 

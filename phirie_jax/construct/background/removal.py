@@ -50,6 +50,7 @@ from phirie_jax.construct.background.views import (
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.layout import resolve
 from phirie_jax.observe.raycast import Raycaster
+from phirie_jax.records import InstanceRecord, ObjectRecord
 from phirie_jax.types import Camera, GaussianSplatData
 
 DEPTH_ALPHA = 0.5  # rendered alpha below this at a pixel: nothing of the object there to occlude
@@ -74,16 +75,16 @@ class ObjectInput:
         return np.stack([pts.min(0) - margin, pts.max(0) + margin])
 
 
-def load_object(entry: dict, instance: dict, out_dir: Path) -> ObjectInput:
-    """An object's inputs from the manifest's ``objects`` and ``instances`` entries."""
-    data = np.load(resolve(out_dir, instance["points"]))
+def load_object(entry: ObjectRecord, instance: InstanceRecord, out_dir: Path) -> ObjectInput:
+    """An object's inputs from its record and its instance's."""
+    data = np.load(resolve(out_dir, instance.points))
     mesh = None
-    if entry.get("mesh") and entry.get("pose") is not None:
-        vertices, faces = read_mesh(resolve(out_dir, entry["mesh"]))
-        pose = np.asarray(entry["pose"], np.float64)
+    if entry.mesh and entry.pose is not None:
+        vertices, faces = read_mesh(resolve(out_dir, entry.mesh))
+        pose = np.asarray(entry.pose, np.float64)
         mesh = (vertices @ pose[:3, :3].T + pose[:3, 3], faces)
     return ObjectInput(
-        id=int(entry["id"]), q=np.asarray(data["points"], np.float64), mesh=mesh,
+        id=int(entry.id), q=np.asarray(data["points"], np.float64), mesh=mesh,
         views=np.asarray(data["views"], np.int64), labels=np.asarray(data["labels"], np.int64),
         mask_paths=[resolve(out_dir, str(p)) for p in data["mask_paths"]],
         bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64))

@@ -1,8 +1,9 @@
-"""The background branch, end to end: ``run_background(scene_dir, out_dir, config)``.
+"""The background branch, end to end: ``construct_background(objects, instances, up, supports, ...)``
+(``run_background(scene_dir, out_dir, config)`` on an output folder alone).
 
-Reads the capture G0 (the scene folder) and what the earlier stages wrote in ``out_dir``
-(``manifest.json`` ``instances`` and ``objects``, ``observe/instance_<id>.npz``, the assets'
-``objects/<id>/mesh.obj``), and for the objects being made movable:
+Takes the capture G0, the earlier stages' records (``records.ObjectRecord``,
+``records.InstanceRecord``) and their files in ``out_dir`` (``observe/instance_<id>.npz``, the
+assets' ``objects/<id>/mesh.obj``), and for the objects being made movable:
 
 1. removal, coupled to the object identity: R_i = R_obs ∪ R_asset ∪ R_mask (``removal``);
 2. per object a robust support plane and the exposed cells of it (``plane``); where the kept
@@ -46,26 +47,21 @@ from phirie_jax.construct.background.views import CropRenderer, make_crop
 from phirie_jax.geometry import sigmoid
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.scene import load_scene
-from phirie_jax.manifest import Manifest, to_dict
+from phirie_jax.manifest import Manifest, Timings, to_dict
 from phirie_jax.observe.support import Support
+from phirie_jax.records import BackgroundRecord, InstanceRecord, ObjectRecord, plain
 from phirie_jax.types import Camera, GaussianSplatData, SceneInput
 
 VISIBLE_TRANS = 0.5  # a target sees a disk where the front layer lets this much through
 BASE_PERCENTILE = 2  # without a recorded support, an object's base is this percentile of Q_i's height
 
 
-# --- what the earlier stages wrote (the manifest's sections, read in one place each) -------------
-
-def _instances(manifest: Manifest) -> dict[int, dict]:
-    """The observe stage's ``instances`` by id."""
-    return {i["id"]: i for i in manifest.get("instances") or []}
-
-
 # --- the run's state --------------------------------------------------------------------------
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class _Run:
-    """What every step reads, and the records the steps add to."""
+    """What every step reads, and the records the steps add to (mutable on purpose: each step
+    fills in its objects' records and appends to ``unsupported`` and ``failed``)."""
 
     out_dir: Path
     data: GaussianSplatData          # (N,) the capture G0
@@ -111,60 +107,75 @@ def _fail(record: dict, status: str, reason: str, err: BaseException | None = No
 
 def run_background(scene_dir: str | Path, out_dir: str | Path, config: BackgroundConfig | None = None,
                    scene: SceneInput | None = None) -> dict:
-    """The background stage (module docstring). Returns the manifest as a dict."""
-    out_dir = Path(out_dir)
-    config = config or BackgroundConfig()
+    """The background stage on an output folder alone (``construct_background``; the folder's
+    manifest read and written). Returns the manifest as a dict."""
     manifest = Manifest.load_or_create(out_dir)
     objects = manifest.require("objects", "the object-construction stage")
-    with manifest.timed("background"), CompileCount() as compiles:
-        with manifest.timed("background.load"):
-            run = _load_inputs(scene_dir, out_dir, manifest, objects, config, scene)
-        with manifest.timed("background.removal"):
+    manifest.set("background", construct_background(
+        objects, manifest.get("instances", ()), manifest.up(), manifest.support_records(), scene_dir, out_dir, config,
+        scene, manifest.timings))
+    manifest.write()
+    return manifest.data
+
+
+def construct_background(objects: tuple[ObjectRecord, ...], instances: tuple[InstanceRecord, ...], up: np.ndarray,
+                         supports: dict[int, dict], scene_dir: str | Path | None, out_dir: str | Path,
+                         config: BackgroundConfig | None = None, scene: SceneInput | None = None,
+                         timings: Timings | None = None) -> BackgroundRecord:
+    """The background stage (module docstring) of ``objects`` observed as ``instances``, in the
+    world of ``scene`` (else the folder ``scene_dir``; up: (3,) its up; supports: object id → the
+    record of the support it stands on, ``Manifest.support_records``) → the ``background`` record."""
+    out_dir = Path(out_dir)
+    config = config or BackgroundConfig()
+    timings = timings if timings is not None else Timings()
+    with timings.timed("background"), CompileCount() as compiles:
+        with timings.timed("background.load"):
+            run = _load_inputs(scene_dir, out_dir, instances, up, objects, config, scene)
+        with timings.timed("background.removal"):
             sets, removed = _removal(run, config)
-        with manifest.timed("background.plane"):
-            fills = _plane_fills(run, sets, removed, manifest, config)
+        with timings.timed("background.plane"):
+            fills = _plane_fills(run, sets, removed, supports, config)
         fill_data, frames_record, refine_record = None, [], None
         if fills:
-            with manifest.timed("background.targets"):
+            with timings.timed("background.targets"):
                 disk_set = _disk_set(fills)
                 frames, frames_record = _frames(run, removed, disk_set, fills, config)
             if frames:
-                with manifest.timed("background.refine"):
+                with timings.timed("background.refine"):
                     disk_set = _colour_from_targets(run, disk_set, frames, fills)
                     if config.refine.iterations > 0:
                         fill_data, refine_record = refine(disk_set, frames, config, run.data.sh.shape[1])
             fill_data = disk_set.disks if fill_data is None else fill_data
             _mark_filled(run, fills)
-        with manifest.timed("background.write"):
+        with timings.timed("background.write"):
             background, kept_num = _write(run, removed, fill_data)
-        manifest.set("background", {**_section(run, config, removed, background, kept_num, frames_record,
-                                               refine_record), "compiles": compiles.record()})
-    manifest.write()
-    return manifest.data
+        section = _section(run, config, removed, background, kept_num, frames_record, refine_record)
+    return BackgroundRecord.from_json(plain({**section, "compiles": compiles.record()}))
 
 
-def _load_inputs(scene_dir: str | Path, out_dir: Path, manifest: Manifest, objects: list[dict],
-                 config: BackgroundConfig, scene: SceneInput | None) -> _Run:
+def _load_inputs(scene_dir: str | Path | None, out_dir: Path, instance_records: tuple[InstanceRecord, ...],
+                 up: np.ndarray, objects: tuple[ObjectRecord, ...], config: BackgroundConfig,
+                 scene: SceneInput | None) -> _Run:
     """The capture, its cameras, up, and the inputs of the objects being removed (the others are
     recorded as skipped, those whose inputs cannot be read as failed)."""
     scene = scene or load_scene(scene_dir, check_images=False)
     data = scene.require_gaussians()
     cameras = scene.require_cameras()
-    instances = _instances(manifest)
+    instances = {i.id: i for i in instance_records}
     records: dict[int, dict] = {}
     inputs: list[ObjectInput] = []
     for entry in objects:
-        rec = records.setdefault(entry["id"], {"id": entry["id"], "status": None, "reason": None})
-        if entry.get("status") not in config.removal.statuses:
-            _fail(rec, "skipped", f"object status {entry.get('status')!r}: its Gaussians stay in the background")
+        rec = records.setdefault(entry.id, {"id": entry.id, "status": None, "reason": None})
+        if entry.status not in config.removal.statuses:
+            _fail(rec, "skipped", f"object status {str(entry.status)!r}: its Gaussians stay in the background")
             continue
         try:
-            if entry["id"] not in instances:
-                raise KeyError(f"no instance {entry['id']} in the manifest")
-            inputs.append(load_object(entry, instances[entry["id"]], out_dir))
+            if entry.id not in instances:
+                raise KeyError(f"no instance {entry.id} in the manifest")
+            inputs.append(load_object(entry, instances[entry.id], out_dir))
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
             _fail(rec, "failed", f"inputs unreadable, not removed: {type(err).__name__}: {err}", err)
-    return _Run(out_dir, data, cameras, manifest.up() / np.linalg.norm(manifest.up()), CropRenderer(), inputs, records)
+    return _Run(out_dir, data, cameras, up / np.linalg.norm(up), CropRenderer(), inputs, records)
 
 
 def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.ndarray]:
@@ -178,12 +189,12 @@ def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.
     return sets, removed
 
 
-def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, manifest: Manifest,
+def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support_records: dict[int, dict],
                  config: BackgroundConfig) -> list[_ObjectFill]:
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
-    supports = {k: Support.from_record(r) for k, r in manifest.support_records().items()}
+    supports = {k: Support.from_record(r) for k, r in support_records.items()}
     fills = []
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]

@@ -1,7 +1,8 @@
-"""Object construction, end to end: ``run_objects(scene_dir, out_dir, config, scene, settle)``.
+"""Object construction, end to end: ``construct_objects(instances, up, scene, out_dir, config, settle)``
+(``run_objects(scene_dir, out_dir, ...)`` on an output folder alone).
 
-Reads the observation stage's outputs in ``out_dir`` (``manifest.json`` ``instances`` and
-``observe/instance_<id>.npz``) and, per instance:
+Takes the observation stage's records (``records.InstanceRecord``) and their files in ``out_dir``
+(``observe/instance_<id>.npz``) and, per instance:
 
 1. candidates: external files from ``candidates/<id>/`` and the built-in generators, in the
    configured pool order (``construct.candidates``);
@@ -19,11 +20,11 @@ Reads the observation stage's outputs in ``out_dir`` (``manifest.json`` ``instan
 Folders ``objects/<id>/`` that a previous run into the same ``out_dir`` wrote for objects
 this run has no assets for are removed (only when they hold nothing but the stages' files).
 
-Works in the scene's frame (``phirie_jax.frame``: metres, up as the manifest's ``frame``
-records it, +z for every scene converted with one). Writes the manifest ``objects`` section
-(docs/architecture.md "Contracts"), a ``construct`` record (supports, config) and timings ``objects`` /
-``objects.<step>``. A failure
-of one object is recorded (status "failed" with the reason) and the rest go on.
+Works in the scene's frame (``phirie_jax.frame``: metres, up as the frame records it, +z for
+every scene converted with one). Returns an ``ObjectRecord`` per instance (the manifest's
+``objects``, docs/architecture.md "Contracts") and the ``construct`` detail (supports, config);
+timings ``objects`` / ``objects.<step>``. A failure of one object is recorded (status "failed"
+with the reason) and the rest go on.
 """
 
 from __future__ import annotations
@@ -66,17 +67,18 @@ from phirie_jax.frame.gravity import GravityFrame, gravity_frame
 from phirie_jax.frame.resolve import scene_in_world
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.io.scene import load_scene
-from phirie_jax.manifest import ACCEPTED, REJECTED, UNVERIFIED, Manifest, to_dict
+from phirie_jax.manifest import ACCEPTED, REJECTED, UNVERIFIED, Manifest, Timings, to_dict
 from phirie_jax.observe.support import Support, find_support
+from phirie_jax.records import InstanceRecord, ObjectRecord, plain
 from phirie_jax.types import GaussianSplatData, SceneInput
 
 
-def _raycaster(manifest: Manifest, scene: SceneInput):
-    """The surface the observation stage lifted onto (scan mesh or its splat-derived one) as a
-    raycaster, and its path; (None, None) without one."""
+def _raycaster(observed_surface: Path | None, scene: SceneInput):
+    """The surface the observation stage lifted onto (``observed_surface``, or the scan mesh) as
+    a raycaster, and its path; (None, None) without one."""
     from phirie_jax.observe.raycast import Raycaster
 
-    for path in (manifest.observed_surface(), scene.surface_mesh):
+    for path in (observed_surface, scene.surface_mesh):
         if path is not None and Path(path).is_file():
             try:
                 vertices, faces = read_mesh(path)
@@ -86,7 +88,7 @@ def _raycaster(manifest: Manifest, scene: SceneInput):
     return None, None
 
 
-def _instance_input(record: dict, points: np.ndarray, data: dict, frame: GravityFrame, support: Support,
+def _instance_input(record: InstanceRecord, points: np.ndarray, data: dict, frame: GravityFrame, support: Support,
                     scene: SceneInput, out_dir: Path) -> InstanceInput:
     cams, paths, labels = [], [], []
     for view, path, label in zip(data["views"], data["mask_paths"], data["labels"]):
@@ -96,7 +98,7 @@ def _instance_input(record: dict, points: np.ndarray, data: dict, frame: Gravity
         cams.append(scene.cameras[int(view)])
         paths.append(p if p.is_absolute() else out_dir / p)
         labels.append(int(label))
-    return InstanceInput(int(record["id"]), frame.to_gravity(points), frame, support, tuple(cams), tuple(paths),
+    return InstanceInput(int(record.id), frame.to_gravity(points), frame, support, tuple(cams), tuple(paths),
                          tuple(labels))
 
 
@@ -112,17 +114,20 @@ def _with_checks(entry: dict, h: Hypothesis, volume: float, config: ObjectsConfi
     return {**entry, "scores": h.scores(), "checks": checks, "gravity_matrix": h.matrix}
 
 
-def register_candidate(candidate: Candidate, obs: Observation, config: ObjectsConfig, manifest: Manifest) -> dict:
-    """Registration, checks and the bounded retry of one candidate → its manifest record."""
+def register_candidate(candidate: Candidate, obs: Observation, config: ObjectsConfig,
+                       timings: Timings | None = None) -> dict:
+    """Registration, checks and the bounded retry of one candidate → its record (``candidates[]``);
+    ``timings``: where ``objects.sample`` and ``objects.register`` add up (None: not kept)."""
+    timings = timings if timings is not None else Timings()
     entry = _entry(candidate)
     if not candidate.ok:
         return entry
     rc = config.registration
-    with manifest.timed("objects.sample"):
+    with timings.timed("objects.sample"):
         model = sample_model(candidate.vertices, candidate.faces, rc.points, rc.seed)
         volume = hull_volume(candidate.vertices)
     t_reg = time.perf_counter()
-    with manifest.timed("objects.register"):
+    with timings.timed("objects.register"):
         if candidate.placement is not None:
             hyps = [score_placement(model, obs, candidate.placement, rc)]
         else:
@@ -137,7 +142,7 @@ def register_candidate(candidate: Candidate, obs: Observation, config: ObjectsCo
     chosen = own
     if candidate.placement is None and config.retry and failed(own["checks"]):
         if len(hyps) == 1:  # lazy retry: the other five axes in a second call
-            with manifest.timed("objects.register"):
+            with timings.timed("objects.register"):
                 more, _ = search(model, obs, rc, OTHER_AXES, snap=config.snap_to_support)
             calls += 1
             hyps += [h for h in more if h.finite]
@@ -261,8 +266,8 @@ def settle_candidates(entries: list[dict], pool: list[Candidate], up: np.ndarray
         e["checks"] = {**e["checks"], "settling": row}
 
 
-def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
-                     config: ObjectsConfig, out_dir: Path, manifest: Manifest,
+def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
+                     config: ObjectsConfig, out_dir: Path, timings: Timings,
                      settle: Callable | None = None, surface=None) -> dict:
     """The manifest ``objects`` entry of one instance (writes its asset files when accepted).
     With ``settle``, every candidate is drop-tested before ranking (settling check); with the
@@ -270,12 +275,12 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
     out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
-    with manifest.timed("objects.candidates"):
+    with timings.timed("objects.candidates"):
         pool = candidate_pool(inst, scene.candidates.get(inst.id, ()), config)
-    entries = _registered(pool, inst, config, manifest)
+    entries = _registered(pool, inst, config, timings)
     if settle is not None:
-        with manifest.timed("objects.settle"):
-            settle_candidates(entries, pool, inst.frame.up, record.get("category"), settle)
+        with timings.timed("objects.settle"):
+            settle_candidates(entries, pool, inst.frame.up, record.category, settle)
     chosen = _select(entries, config)
     for position, e in enumerate(rank(entries)):
         e["rank"] = position
@@ -285,23 +290,23 @@ def construct_object(record: dict, q_world: np.ndarray, inst: InstanceInput, sce
         return {**out, "reason": f"no candidate could be registered ({reasons})"}
     bad = failed(chosen["checks"])
     out.update(candidate=chosen["name"], checks=chosen["checks"], unresolved_checks=bad)
-    discovered = discovered_rejection(record.get("source"), bad)
+    discovered = discovered_rejection(record.source, bad)
     if discovered:
         return {**out, "status": "rejected", "reason": discovered}
     if config.strict and bad:
         return {**out, "status": REJECTED, "reason": f"strict: failed checks {bad} on the best candidate"}
     candidate = next(c for c in pool if c.name == chosen["name"])
-    with manifest.timed("objects.assets"):
+    with timings.timed("objects.assets"):
         files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir, surface)
     return {**out, **files, "status": UNVERIFIED if bad else ACCEPTED,
             "reason": None if not bad else f"kept with failed checks: {', '.join(bad)} (use --strict to reject)"}
 
 
-def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, manifest: Manifest) -> list[dict]:
+def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, timings: Timings) -> list[dict]:
     """Every candidate of the pool registered and checked, its placement as a world pose."""
     obs = prepare_observation(inst.points, inst.support.height, inst.support.source in ("surface", "prompt"),
                               config.registration, cut_at_support=inst.support.is_plane)
-    entries = [register_candidate(c, obs, config, manifest) for c in pool]
+    entries = [register_candidate(c, obs, config, timings) for c in pool]
     for e in entries:
         e["pose"] = None if "gravity_matrix" not in e else inst.frame.matrix() @ e["gravity_matrix"]
     return entries
@@ -312,34 +317,33 @@ def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfi
 
 @dataclasses.dataclass(frozen=True)
 class _Observed:
-    record: dict        # the manifest's ``instances`` entry
+    record: InstanceRecord
     points: np.ndarray  # (N, 3) world Q_i
     data: dict          # its ``observe/instance_<id>.npz`` arrays
 
 
-def _load_instances(manifest: Manifest, out_dir: Path) -> tuple[list[_Observed], list[dict]]:
+def _load_instances(instances: tuple[InstanceRecord, ...], out_dir: Path) -> tuple[list[_Observed], list[dict]]:
     """Each instance's observed points; an unreadable file makes that object failed."""
     loaded, failures = [], []
-    for record in manifest.instances():
+    for record in instances:
         try:
-            data = dict(np.load(out_dir / record["points"]))
+            data = dict(np.load(out_dir / record.points))
             loaded.append(_Observed(record, data["points"].astype(np.float64), data))
         except (OSError, KeyError, ValueError) as err:
-            failures.append(_entry_for(record["id"], f"observed points unreadable: {err}"))
+            failures.append(_entry_for(record.id, f"observed points unreadable: {err}"))
     return loaded, failures
 
 
-def _frame_and_supports(manifest: Manifest, loaded: list[_Observed], raycaster
-                        ) -> tuple[GravityFrame, list[Support]]:
+def _frame_and_supports(up: np.ndarray, loaded: list[_Observed], raycaster) -> tuple[GravityFrame, list[Support]]:
     """The scene's gravity frame (up as decided once, ``phirie_jax.frame``) and each instance's
     support under it (as observation found it; found here for an observation that did not record it)."""
-    frame = gravity_frame(manifest.up(), "scene frame")
-    return frame, [Support.from_record(o.record["support"]) if o.record.get("support")
+    frame = gravity_frame(up, "scene frame")
+    return frame, [Support.from_record(o.record.support) if o.record.support
                    else find_support(frame.to_gravity(o.points), frame, raycaster) for o in loaded]
 
 
 def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list[Support], scene: SceneInput,
-                    config: ObjectsConfig, out_dir: Path, manifest: Manifest, settle: Callable | None,
+                    config: ObjectsConfig, out_dir: Path, timings: Timings, settle: Callable | None,
                     surface=None) -> list[dict]:
     """``construct_object`` of every instance; one object's failure is recorded, the rest go on."""
     objects = []
@@ -347,46 +351,62 @@ def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list
         start = time.perf_counter()
         try:
             inst = _instance_input(o.record, o.points, o.data, frame, support, scene, out_dir)
-            entry = construct_object(o.record, o.points, inst, scene, config, out_dir, manifest, settle, surface)
+            entry = construct_object(o.record, o.points, inst, scene, config, out_dir, timings, settle, surface)
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
-            entry = {**_entry_for(o.record["id"], f"{type(err).__name__}: {err}"),
+            entry = {**_entry_for(o.record.id, f"{type(err).__name__}: {err}"),
                      "traceback": traceback.format_exc(limit=4)}
         entry["time_s"] = time.perf_counter() - start
         objects.append(entry)
     return objects
 
 
-def _record(manifest: Manifest, objects: list[dict], surface_path: str | None,
-            loaded: list[_Observed], supports: list[Support], config: ObjectsConfig, out_dir: Path) -> None:
-    objects.sort(key=lambda o: o["id"])
-    stale = assets.remove_stale_object_folders(out_dir, {o["id"] for o in objects if o.get("mesh")})
-    manifest.set("objects", objects)
-    manifest.set("construct", {
-        "surface": surface_path,
-        "supports": [{"id": o.record["id"], "height": s.height, "source": s.source, "hits": s.hits}
-                     for o, s in zip(loaded, supports)],
-        "strict": config.strict, "config": to_dict(config), "stale_object_folders": stale})
+def _construct_record(surface_path: str | None, loaded: list[_Observed], supports: list[Support],
+                      config: ObjectsConfig, stale: list) -> dict:
+    """The object stage's own record (``construct``): the surface, the supports, the config."""
+    return plain({"surface": surface_path,
+                  "supports": [{"id": o.record.id, "height": s.height, "source": s.source, "hits": s.hits}
+                               for o, s in zip(loaded, supports)],
+                  "strict": config.strict, "config": to_dict(config), "stale_object_folders": stale})
+
+
+def construct_objects(instances: tuple[InstanceRecord, ...], up: np.ndarray, scene: SceneInput,
+                      out_dir: str | Path, config: ObjectsConfig | None = None, settle: Callable | None = None,
+                      observed_surface: Path | None = None, timings: Timings | None = None
+                      ) -> tuple[tuple[ObjectRecord, ...], dict]:
+    """Construct every observed instance's object (see the module docstring) in the world of
+    ``scene`` (up: (3,) its up, as the frame records it); writes the assets in ``out_dir`` and
+    returns (the objects by id, the ``construct`` record).
+
+    ``settle``: the candidates' settling check (``construct.physics.settling.candidate_settler``,
+    which the pipeline passes); None leaves that check "not run". ``observed_surface``: the
+    surface observation lifted onto. ``timings``: ``objects`` and ``objects.<step>``.
+    """
+    out_dir = Path(out_dir)
+    config = config or ObjectsConfig()
+    timings = timings if timings is not None else Timings()
+    with timings.timed("objects"):
+        raycaster, surface_path = _raycaster(observed_surface, scene)
+        loaded, failures = _load_instances(instances, out_dir)
+        with timings.timed("objects.supports"):
+            frame, supports = _frame_and_supports(up, loaded, raycaster)
+        objects = failures + _construct_each(loaded, frame, supports, scene, config, out_dir, timings, settle,
+                                             raycaster)
+        objects.sort(key=lambda o: o["id"])
+        stale = assets.remove_stale_object_folders(out_dir, {o["id"] for o in objects if o.get("mesh")})
+        record = _construct_record(surface_path, loaded, supports, config, stale)
+    return tuple(ObjectRecord.from_json(plain(o)) for o in objects), record
 
 
 def run_objects(scene_dir: str | Path, out_dir: str | Path, config: ObjectsConfig | None = None,
                 scene: SceneInput | None = None, settle: Callable | None = None) -> dict:
-    """Construct every observed instance's object (see the module docstring). Returns the manifest.
-
-    ``settle``: the candidates' settling check (``construct.physics.settling.candidate_settler``,
-    which the pipeline passes); None leaves that check "not run".
-    """
-    out_dir = Path(out_dir)
-    config = config or ObjectsConfig()
+    """The object stage on an output folder alone (``construct_objects``; the folder's manifest
+    read and written, the scene loaded from ``scene_dir`` unless given). Returns the manifest."""
     manifest = Manifest.load_or_create(out_dir)
-    manifest.instances()  # the observation stage ran
-    with manifest.timed("objects"):
-        scene = scene or scene_in_world(load_scene(scene_dir, check_images=False), manifest.capture_to_world())
-        raycaster, surface_path = _raycaster(manifest, scene)
-        loaded, failures = _load_instances(manifest, out_dir)
-        with manifest.timed("objects.supports"):
-            frame, supports = _frame_and_supports(manifest, loaded, raycaster)
-        objects = failures + _construct_each(loaded, frame, supports, scene, config, out_dir, manifest, settle,
-                                             raycaster)
-        _record(manifest, objects, surface_path, loaded, supports, config, out_dir)
+    instances = manifest.instances()  # the observation stage ran
+    scene = scene or scene_in_world(load_scene(scene_dir, check_images=False), manifest.capture_to_world())
+    objects, record = construct_objects(instances, manifest.up(), scene, out_dir, config, settle,
+                                        manifest.observed_surface(), manifest.timings)
+    manifest.set("objects", objects)
+    manifest.set("construct", record)
     manifest.write()
     return manifest.data

@@ -1,6 +1,8 @@
-"""The physics stage: ``run_physics(scene_dir, out_dir, config)`` and ``run_droptest(out_dir, config)``.
+"""The physics stage: ``physics(objects, categories, up, surfaces, out_dir, config)`` and
+``drop_test_objects(objects, up, out_dir, config)`` (``run_physics`` and ``run_droptest`` on an
+output folder alone).
 
-For every accepted object of the manifest (written by the object-construction stage):
+For every kept object (``records.ObjectRecord``, from the object-construction stage):
 repair its canonical mesh, decompose it with CoACD (hull fallback recorded), write the parts
 to ``objects/<id>/collision/part_NN.obj`` (canonical frame), set the physics priors and the
 uniform-density inertia (its ``body.ObjectBody``), write ``objects/<id>/object.urdf``. A mesh
@@ -41,9 +43,10 @@ from phirie_jax.errors import SceneInputError
 from phirie_jax.geometry import split_sim3
 from phirie_jax.io.atomic import write_text
 from phirie_jax.io.mesh import load_trimesh, read_mesh
-from phirie_jax.manifest import ACCEPTED, UNVERIFIED, Manifest, is_kept, to_dict
+from phirie_jax.manifest import ACCEPTED, FAILED_OBJECT, UNVERIFIED, Manifest, Timings, to_dict
 from phirie_jax.native import IsolatedPool
 from phirie_jax.progress import task
+from phirie_jax.records import Check, ObjectRecord, PhysicsRecord, plain
 
 SETTLE_SECONDS = 2.0
 
@@ -53,102 +56,125 @@ SETTLE_SECONDS = 2.0
 
 def run_physics(scene_dir: str | Path | None, out_dir: str | Path, config: PhysicsConfig | None = None,
                 collision: CollisionJob | None = None) -> dict:
-    """The physics stage (module docstring). ``scene_dir`` is unused beyond the manifest's paths.
+    """The physics stage on an output folder alone (``physics``; the folder's manifest read and
+    written). ``scene_dir`` is unused: the manifest holds every path this stage needs."""
+    del scene_dir
+    manifest = Manifest.load_or_create(out_dir)
+    objects = manifest.require("objects", "the object-construction stage")
+    objects, section = physics(objects, manifest.categories(), manifest.up(), manifest.surface_paths(), out_dir,
+                               config, collision, manifest.timings)
+    manifest.set("objects", objects)
+    manifest.set("physics", section)
+    manifest.write()
+    return manifest.data
+
+
+def physics(objects: tuple[ObjectRecord, ...], categories: dict, up: np.ndarray, surface_paths: list[str],
+            out_dir: str | Path, config: PhysicsConfig | None = None, collision: CollisionJob | None = None,
+            timings: Timings | None = None) -> tuple[tuple[ObjectRecord, ...], PhysicsRecord]:
+    """The physics stage (module docstring) of the objects (``categories``: instance id →
+    category; ``up``: (3,) the scene's; ``surface_paths``: the scene surfaces the earlier stages
+    recorded) → (the objects with their bodies and drop tests, the ``physics`` record).
     collision: the objects' collision already started (``start_collision``), whose outcomes are
     taken instead of building them here; timings ``physics.collision`` (its own wall time) and
     ``physics.collision_wait`` (what this stage still waited for it)."""
-    del scene_dir  # the manifest holds every path this stage needs (mesh, surface)
     out_dir = Path(out_dir)
     config = config or PhysicsConfig()
-    manifest = Manifest.load_or_create(out_dir)
-    objects = manifest.require("objects", "the object-construction stage")
-    with manifest.timed("physics"):
+    timings = timings if timings is not None else Timings()
+    with timings.timed("physics"):
         if collision is None:
-            with manifest.timed("physics.collision"):
-                build_accepted(objects, manifest.categories(), out_dir, config)
-            pool = pool_record(sum(is_kept(e) for e in objects), config)
+            with timings.timed("physics.collision"):
+                objects = build_accepted(objects, categories, out_dir, config)
+            pool = pool_record(sum(e.kept for e in objects), config)
         else:
-            with manifest.timed("physics.collision_wait"):
-                apply_outcomes(objects, collision.ids, collision.outcomes())
-            manifest.record_timing("physics.collision", collision.seconds)
+            with timings.timed("physics.collision_wait"):
+                objects = apply_outcomes(objects, collision.ids, collision.outcomes())
+            timings.record("physics.collision", collision.seconds)
             pool = pool_record(len(collision.ids), config)
-        with manifest.timed("physics.export"):
-            section = export_scene(objects, manifest.up(), _surface(manifest, out_dir), out_dir, config)
+        with timings.timed("physics.export"):
+            section = export_scene(objects, up, _surface(surface_paths, out_dir), out_dir, config)
         section["collision_workers"] = pool
-        manifest.set("objects", objects)
-        with manifest.timed("physics.droptest"):
-            run_droptest(out_dir, config, manifest)
-        manifest.set("physics", section)
-    manifest.write()
-    return manifest.data
+        with timings.timed("physics.droptest"):
+            objects = drop_test_objects(objects, up, out_dir, config, timings)
+    return objects, PhysicsRecord.from_json(plain(section))
 
 
-def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None, manifest: Manifest | None = None) -> dict:
-    """Drop-test every exported object (collision parts read from their files) in one batch;
-    writes ``drop_test`` and ``checks.settling`` of each and returns the manifest. On an exported
-    folder alone (no ``manifest`` given: not from inside the physics stage), the objects and
-    physics stages must have completed (``SceneInputError`` naming the one that did not)."""
-    out_dir = Path(out_dir)
-    config = config or PhysicsConfig()
-    if manifest is None:
-        if not (out_dir / layout.MANIFEST).is_file():
-            raise SceneInputError(out_dir, None, f"no {layout.MANIFEST} (expected a phirie convert output folder)")
-        manifest = Manifest.load_or_create(out_dir)
-        manifest.require_complete(("objects", "physics"), "the drop tests")
+def run_droptest(out_dir: str | Path, config: PhysicsConfig | None = None) -> dict:
+    """The drop tests on an exported folder alone (``drop_test_objects``): the objects and physics
+    stages must have completed (``SceneInputError`` naming the one that did not). Returns the
+    manifest."""
+    manifest = Manifest.load(out_dir)
+    manifest.require_complete(("objects", "physics"), "the drop tests")
     objects = manifest.require("objects", "the object and physics stages")
-    with manifest.timed("droptest"):
-        entries, bodies = exported_bodies(objects, out_dir, manifest.up(), config)
-        record_verdicts(entries, droptest.drop_test(bodies, config.drop_test), config)
-        manifest.set("objects", objects)
+    manifest.set("objects", drop_test_objects(objects, manifest.up(), out_dir, config, manifest.timings))
     manifest.write()
     return manifest.data
+
+
+def drop_test_objects(objects: tuple[ObjectRecord, ...], up: np.ndarray, out_dir: str | Path,
+                      config: PhysicsConfig | None = None, timings: Timings | None = None
+                      ) -> tuple[ObjectRecord, ...]:
+    """Drop-test every exported object (collision parts read from their files) in one batch →
+    the objects with their ``drop_test`` and ``checks.settling`` (timing ``droptest``)."""
+    config = config or PhysicsConfig()
+    timings = timings if timings is not None else Timings()
+    with timings.timed("droptest"):
+        objects, tested, bodies = exported_bodies(objects, Path(out_dir), up, config)
+        verdicts = record_verdicts([objects[k] for k in tested], droptest.drop_test(bodies, config.drop_test), config)
+        done = dict(zip(tested, verdicts))
+    return tuple(done.get(k, o) for k, o in enumerate(objects))
 
 
 # --- step 1: collision, priors, inertia, URDF of each accepted object -------------------
 
 
-def build_accepted(objects: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig) -> None:
-    """Build every accepted object in place: its fields on success, else status "failed" with the reason."""
-    accepted = [e for e in objects if is_kept(e)]
-    apply_outcomes(objects, [e["id"] for e in accepted], build_objects(accepted, categories, out_dir, config))
+def build_accepted(objects: tuple[ObjectRecord, ...], categories: dict, out_dir: Path, config: PhysicsConfig
+                   ) -> tuple[ObjectRecord, ...]:
+    """Every kept object built: its fields on success, else status "failed" with the reason."""
+    accepted = [e for e in objects if e.kept]
+    return apply_outcomes(objects, [e.id for e in accepted], build_objects(accepted, categories, out_dir, config))
 
 
-def apply_outcomes(objects: list[dict], ids: list, outcomes: list[dict]) -> None:
-    """Each outcome of ``_build_outcome`` onto the entry of its object id, in place."""
-    by_id = {e["id"]: e for e in objects}
-    for ident, outcome in zip(ids, outcomes):
-        entry = by_id[ident]
+def apply_outcomes(objects: tuple[ObjectRecord, ...], ids: list, outcomes: list[dict]) -> tuple[ObjectRecord, ...]:
+    """The objects with each outcome of ``_build_outcome`` applied to the object of its id."""
+    by_id = dict(zip(ids, outcomes))
+
+    def applied(entry: ObjectRecord) -> ObjectRecord:
+        outcome = by_id.get(entry.id)
+        if outcome is None:
+            return entry
         if "update" in outcome:
-            entry.update(outcome["update"])
-        else:
-            _fail(entry, outcome["reason"], collision=[],
-                  **({"traceback": outcome["traceback"]} if "traceback" in outcome else {}))
+            return entry.with_fields(**outcome["update"])
+        return _fail(entry, outcome["reason"], collision=(),
+                     **({"traceback": outcome["traceback"]} if "traceback" in outcome else {}))
+
+    return tuple(applied(e) for e in objects)
 
 
-def build_object(entry: dict, category: str | None, out_dir: Path, config: PhysicsConfig) -> dict:
+def build_object(entry: ObjectRecord, category: str | None, out_dir: Path, config: PhysicsConfig) -> dict:
     """Collision, priors, inertia and URDF of one accepted object → the fields to update."""
-    if entry.get("pose") is None or not entry.get("mesh"):
+    if entry.pose is None or not entry.mesh:
         raise MeshError("accepted object without a pose or mesh in the manifest")
-    pose = np.asarray(entry["pose"])
+    pose = np.asarray(entry.pose)
     split_sim3(pose)   # a pose that is no similarity fails before the mesh work
-    vertices, faces = _load_mesh(layout.resolve(out_dir, entry["mesh"]))
+    vertices, faces = _load_mesh(layout.resolve(out_dir, entry.mesh))
     collision = collision_from_mesh(vertices, faces, config)
-    paths = write_parts(out_dir, entry["id"], collision.parts)
+    paths = write_parts(out_dir, entry.id, collision.parts)
     shape = Shape.of_mesh(vertices, faces, split_sim3(pose)[0])
     # the parts as written, so URDF, MJCF and the drop test agree to the digit
-    body = object_body(entry["id"], [read_part(out_dir / p) for p in paths], pose,
-                       priors(category, config, shape, entry["id"]), paths)
+    body = object_body(entry.id, [read_part(out_dir / p) for p in paths], pose,
+                       priors(category, config, shape, entry.id), paths)
     # MuJoCo must accept the body on its own before it goes into the scene
     droptest.build_model(droptest.DropBody(body, np.eye(3)), droptest.part_bucket(len(body.parts), config.drop_test),
                          config.drop_test)
-    urdf = write_urdf(out_dir, body, entry.get("mesh"))
+    urdf = write_urdf(out_dir, body, entry.mesh)
     pr = body.priors
-    return {"collision": paths, "mass": pr.mass, "friction": pr.friction,
-            "physics": {"body": body_name(entry["id"]), "urdf": urdf, "scale": body.scale, "priors": pr.record(),
+    return {"collision": tuple(paths), "mass": pr.mass, "friction": pr.friction,
+            "physics": {"body": body_name(entry.id), "urdf": urdf, "scale": body.scale, "priors": pr.record(),
                         "mass_properties": body.mass.record(), "collision": collision.report}}
 
 
-def _build_outcome(entry: dict, category: str | None, out_dir: Path, config: PhysicsConfig) -> dict:
+def _build_outcome(entry: ObjectRecord, category: str | None, out_dir: Path, config: PhysicsConfig) -> dict:
     """``{"update": ...}`` of ``build_object``, or ``{"reason": ..., ["traceback": ...]}``."""
     try:
         return {"update": build_object(entry, category, out_dir, config)}
@@ -158,7 +184,7 @@ def _build_outcome(entry: dict, category: str | None, out_dir: Path, config: Phy
         return {"reason": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc(limit=4)}
 
 
-def build_objects(entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig,
+def build_objects(entries: list[ObjectRecord], categories: dict, out_dir: Path, config: PhysicsConfig,
                   build=None) -> list[dict]:
     """``_build_outcome`` of every entry, at most ``config.workers`` at once, each in its own
     fresh interpreter (``native.IsolatedPool``; CoACD is single-threaded).
@@ -209,10 +235,11 @@ class CollisionJob:
     terminates the workers when that work raises. With ``workers=1`` it builds in ``outcomes()``.
     ``build``: what runs per entry (``build_objects``)."""
 
-    def __init__(self, entries: list[dict], categories: dict, out_dir: Path, config: PhysicsConfig, build=None):
-        self.ids = [e["id"] for e in entries]
+    def __init__(self, entries: list[ObjectRecord], categories: dict, out_dir: Path, config: PhysicsConfig,
+                 build=None):
+        self.ids = [e.id for e in entries]
         self._build = _build_outcome if build is None else build
-        self._args = [(e, categories.get(e["id"]), out_dir, config) for e in entries]
+        self._args = [(e, categories.get(e.id), out_dir, config) for e in entries]
         self._start = time.perf_counter()
         self._finished = self._start
         self._pool = self._futures = None
@@ -222,7 +249,7 @@ class CollisionJob:
             self._threads = worker_threads(workers, config)
             self._pool = IsolatedPool("CoACD", workers, self._threads)
             try:
-                self._futures = [self._pool.submit(self._build, *a, description=f"collision of object {a[0]['id']}")
+                self._futures = [self._pool.submit(self._build, *a, description=f"collision of object {a[0].id}")
                                  for a in self._args]
                 for future in self._futures:
                     future.add_done_callback(self._note_finish)
@@ -261,13 +288,11 @@ class CollisionJob:
         return outcomes
 
 
-def start_collision(out_dir: str | Path, config: PhysicsConfig | None = None) -> CollisionJob:
-    """Start building the collision of the manifest's accepted objects (``CollisionJob``)."""
-    out_dir = Path(out_dir)
-    manifest = Manifest.load_or_create(out_dir)
-    objects = manifest.require("objects", "the object-construction stage")
-    accepted = [e for e in objects if is_kept(e)]
-    return CollisionJob(accepted, manifest.categories(), out_dir, config or PhysicsConfig())
+def start_collision(objects: tuple[ObjectRecord, ...], categories: dict, out_dir: str | Path,
+                    config: PhysicsConfig | None = None) -> CollisionJob:
+    """Start building the collision of the kept objects (``CollisionJob``; ``categories``:
+    instance id → category)."""
+    return CollisionJob([e for e in objects if e.kept], categories, Path(out_dir), config or PhysicsConfig())
 
 
 def pool_record(objects: int, config: PhysicsConfig) -> dict:
@@ -290,10 +315,10 @@ def worker_threads(workers: int, config: PhysicsConfig) -> int:
 # --- step 2: supports, scene.xml and its free settle -----------------------------------
 
 
-def export_scene(objects: list[dict], up: np.ndarray, surface, out_dir: Path, config: PhysicsConfig) -> dict:
+def export_scene(objects: tuple[ObjectRecord, ...], up: np.ndarray, surface, out_dir: Path, config: PhysicsConfig) -> dict:
     """Fit the supports, write ``scene.xml`` and settle it (which also proves that it loads);
     returns the manifest's ``physics`` section. ``surface``: the scene surface (trimesh) or None."""
-    exported = [e for e in objects if is_kept(e) and e.get("collision")]
+    exported = [e for e in objects if e.kept and e.collision]
     bodies = [exported_body(e, out_dir) for e in exported]
     placed = [_placed(body, e) for body, e in zip(bodies, exported)]
     background = fit_background(placed, up, surface, config.support_thickness, config.background)
@@ -306,71 +331,78 @@ def export_scene(objects: list[dict], up: np.ndarray, surface, out_dir: Path, co
             "scene_settle": {"seconds": SETTLE_SECONDS, "displacement_m": settle}, "config": to_dict(config)}
 
 
-def _visual_mesh(entry: dict, out_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
+def _visual_mesh(entry: ObjectRecord, out_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """The completed mesh of an exported object (canonical frame), for ``scene.usda``'s visual."""
     try:
-        return _load_mesh(layout.resolve(out_dir, entry["mesh"])) if entry.get("mesh") else None
+        return _load_mesh(layout.resolve(out_dir, entry.mesh)) if entry.mesh else None
     except MeshError:
         return None
 
 
-def _placed(body: ObjectBody, entry: dict) -> PlacedBody:
+def _placed(body: ObjectBody, entry: ObjectRecord) -> PlacedBody:
     """The body's collision vertices placed in the scene, with its support height when known."""
     _, rot, trans = split_sim3(body.pose)  # the parts already carry the pose's scale
     pts = np.concatenate([p.vertices @ rot.T + trans for p in body.parts])
-    support = (entry.get("support") or {}).get("height")
-    return PlacedBody(entry["id"], pts, None if support is None else float(support))
+    return PlacedBody(entry.id, pts, entry.support_height)
 
 
 # --- step 3: drop tests of the exported files ------------------------------------------
 
 
-def exported_bodies(objects: list[dict], out_dir: Path, up: np.ndarray,
-                    config: PhysicsConfig) -> tuple[list[dict], list[droptest.DropBody]]:
-    """The exported objects' entries and drop bodies; an object whose files cannot be read gets
-    its ``drop_test`` error here and is left out."""
-    entries, bodies = [], []
-    for entry in objects:
-        if not is_kept(entry) or not entry.get("collision") or not entry.get("physics"):
+def exported_bodies(objects: tuple[ObjectRecord, ...], out_dir: Path, up: np.ndarray, config: PhysicsConfig
+                    ) -> tuple[tuple[ObjectRecord, ...], list[int], list[droptest.DropBody]]:
+    """(the objects, an object whose files cannot be read with its ``drop_test`` error; the
+    positions of the exported objects that can be tested; their drop bodies)."""
+    objects, tested, bodies = list(objects), [], []
+    for k, entry in enumerate(objects):
+        if not entry.kept or not entry.collision or not entry.physics:
             continue
         try:
             bodies.append(droptest.drop_body(exported_body(entry, out_dir), up))
         except (OSError, ValueError, KeyError, TypeError) as err:
-            entry["drop_test"] = droptest.DropResult.not_run(droptest.resolve_backend(config.drop_test.backend),
-                                                             f"exported files unreadable: {err}").record()
+            objects[k] = dataclasses.replace(entry, drop_test=droptest.DropResult.not_run(
+                droptest.resolve_backend(config.drop_test.backend), f"exported files unreadable: {err}").record())
             continue
-        entries.append(entry)
-    return entries, bodies
+        tested.append(k)
+    return tuple(objects), tested, bodies
 
 
-def record_verdicts(entries: list[dict], results: list[droptest.DropResult], config: PhysicsConfig) -> None:
-    """Each entry's ``drop_test``, ``checks.settling`` and ``unresolved_checks`` from its result."""
+def record_verdicts(entries: list[ObjectRecord], results: list[droptest.DropResult], config: PhysicsConfig
+                    ) -> list[ObjectRecord]:
+    """Each object with its ``drop_test``, ``checks.settling`` and ``unresolved_checks`` from its
+    result (a kept object's status follows its unresolved checks)."""
     backend = droptest.resolve_backend(config.drop_test.backend, len(entries))
     method = f"drop test of the exported collision parts ({backend})"
+    out = []
     for entry, result in zip(entries, results):
-        entry["drop_test"] = result.record()
-        entry.setdefault("checks", {})["settling"] = droptest.settling_check(result, config.drop_test, method)
-        if "unresolved_checks" in entry:
-            bad = [n for n in entry["unresolved_checks"] if n != "settling"]
-            entry["unresolved_checks"] = bad + (["settling"] if result.stable is False else [])
-            if is_kept(entry):
-                entry["status"] = UNVERIFIED if entry["unresolved_checks"] else ACCEPTED
-                entry["reason"] = (f"kept with failed checks: {', '.join(entry['unresolved_checks'])} (use --strict "
-                                   "to reject)" if entry["unresolved_checks"] else None)
+        settling = Check.from_json("settling", droptest.settling_check(result, config.drop_test, method))
+        checks = tuple(settling if c.name == "settling" else c for c in entry.checks)
+        entry = dataclasses.replace(entry, drop_test=result.record(),
+                                    checks=checks if entry.check("settling") else (*checks, settling))
+        if entry.unresolved_checks is not None:
+            bad = [n for n in entry.unresolved_checks if n != "settling"] + (["settling"] if result.stable is False
+                                                                               else [])
+            entry = entry.with_fields(unresolved_checks=bad)
+            if entry.kept:
+                entry = entry.with_fields(
+                    status=UNVERIFIED if bad else ACCEPTED,
+                    reason=f"kept with failed checks: {', '.join(bad)} (use --strict to reject)" if bad else None)
+        out.append(entry)
+    return out
 
 
 # --- reading the manifest and the files ------------------------------------------------
 
 
-def exported_body(entry: dict, out_dir: Path) -> ObjectBody:
+def exported_body(entry: ObjectRecord, out_dir: Path) -> ObjectBody:
     """The body of an exported object, read back from its part files and its manifest priors
     (the manifest's ``mass`` and ``friction`` win over the recorded priors)."""
-    parts = [read_part(layout.resolve(out_dir, p)) for p in entry["collision"]]
-    recorded = entry["physics"]["priors"]
+    parts = [read_part(layout.resolve(out_dir, p)) for p in entry.collision]
+    recorded = entry.physics["priors"]
     pr = Priors(**{**recorded, "solref": tuple(recorded["solref"]), "solimp": tuple(recorded["solimp"])})
-    pr = dataclasses.replace(pr, mass=float(entry.get("mass", pr.mass)),
-                             friction=float(entry.get("friction", pr.friction)))
-    return object_body(entry["id"], parts, np.asarray(entry["pose"]), pr, entry["collision"])
+    pr = dataclasses.replace(pr, mass=float(pr.mass if entry.mass is None else entry.mass),
+                             friction=float(pr.friction if entry.friction is None else entry.friction))
+    return object_body(entry.id, parts, np.asarray(entry.pose), pr, list(entry.collision))
 
 
 def _load_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -382,13 +414,13 @@ def _load_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(str(err)) from None
 
 
-def _fail(entry: dict, reason: str, **extra) -> None:
-    entry.update(status="failed", reason=f"physics: {reason}", **extra)
+def _fail(entry: ObjectRecord, reason: str, **extra) -> ObjectRecord:
+    return entry.with_fields(status=FAILED_OBJECT, reason=f"physics: {reason}", **extra)
 
 
-def _surface(manifest: Manifest, out_dir: Path):
+def _surface(surface_paths: list[str], out_dir: Path):
     """The scene surface the earlier stages used (trimesh), or None."""
-    for p in manifest.surface_paths():
+    for p in surface_paths:
         if p and layout.resolve(out_dir, p).is_file():
             try:
                 mesh = load_trimesh(layout.resolve(out_dir, p))

@@ -18,6 +18,7 @@ from phirie_jax.construct.background.views import CropRenderer
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.scene import load_scene
+from phirie_jax.records import InstanceRecord, ObjectRecord
 from tests.construct.background import scene as toy
 
 FAST = BackgroundConfig(crops=CropConfig(target_sizes=(64,), mask_sizes=(32, 64), margin_px=4),
@@ -110,8 +111,8 @@ def test_removal_takes_the_objects_and_only_what_the_radii_allow(run):
 
 def test_the_occlusion_test_is_what_keeps_the_distractors(run):
     scene, manifest = run
-    inst = {i["id"]: i for i in manifest["instances"]}
-    entry = next(o for o in manifest["objects"] if o["id"] == 4)
+    inst = {i["id"]: InstanceRecord.from_json(i) for i in manifest["instances"]}
+    entry = next(ObjectRecord.from_json(o) for o in manifest["objects"] if o["id"] == 4)
     obj = load_object(entry, inst[4], scene.out)
     cams = load_scene(scene.root / "scene", check_images=False).cameras
     distractors = set(np.flatnonzero(scene.labels == toy.DISTRACTOR))

@@ -16,9 +16,11 @@ from phirie_jax.construct.physics.mjcf import settle_scene
 from phirie_jax.construct.physics.parts import read_part
 from phirie_jax.construct.physics.stage import run_droptest, run_physics, start_collision
 from phirie_jax.errors import SceneInputError
+from phirie_jax.manifest import Manifest
+from phirie_jax.records import ObjectRecord
 from tests.construct.physics.test_collision import fin_mesh
-from tests.processes import running, wait_for
 from tests.fixtures.constructed import constructed_folder
+from tests.processes import running, wait_for
 
 C_BACKEND = PhysicsConfig(coacd=CoacdConfig(resolution=1000, preprocess_resolution=30, mcts_iterations=60,
                                             mcts_nodes=10), drop_test=DropTestConfig(backend="mujoco"))
@@ -211,21 +213,21 @@ def test_parallel_and_in_process_builds_write_the_same_parts(physics, tmp_path):
     from phirie_jax.construct.physics.stage import build_objects
 
     out, _, manifest = physics
-    entries = [{k: v for k, v in o.items() if k in ("id", "status", "pose", "mesh")}
+    entries = [ObjectRecord.from_json({k: v for k, v in o.items() if k in ("id", "status", "pose", "mesh")})
                for o in manifest["objects"] if o["id"] in (1, 2, 90)]
     alone = tmp_path / "alone"
     (alone / "objects").mkdir(parents=True)
     for e in entries:
-        src = out / "objects" / str(e["id"]) / "mesh.obj"
-        (alone / "objects" / str(e["id"])).mkdir()
-        (alone / "objects" / str(e["id"]) / "mesh.obj").write_bytes(src.read_bytes())
+        src = out / "objects" / str(e.id) / "mesh.obj"
+        (alone / "objects" / str(e.id)).mkdir()
+        (alone / "objects" / str(e.id) / "mesh.obj").write_bytes(src.read_bytes())
     import dataclasses
 
     outcomes = build_objects(entries, {}, alone, dataclasses.replace(C_BACKEND, workers=1))
     assert "reason" in outcomes[2] and "update" not in outcomes[2]  # the empty mesh fails the same way
     for e, outcome in zip(entries[:2], outcomes[:2]):
-        parallel = next(o for o in manifest["objects"] if o["id"] == e["id"])
-        assert outcome["update"]["collision"] == parallel["collision"]
+        parallel = next(o for o in manifest["objects"] if o["id"] == e.id)
+        assert list(outcome["update"]["collision"]) == parallel["collision"]
         for path in parallel["collision"]:
             assert (alone / path).read_bytes() == (out / path).read_bytes()
 
@@ -241,7 +243,7 @@ def test_a_scaled_pose_places_the_collision_parts_at_their_scaled_size():
 
     box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
     pose = sim3_matrix(2.0, np.eye(3), [0.0, 0.0, 0.1])
-    placed = _placed(object_body(7, [hull_part(np.asarray(box.vertices), 64)], pose, priors(None)), {"id": 7})
+    placed = _placed(object_body(7, [hull_part(np.asarray(box.vertices), 64)], pose, priors(None)), ObjectRecord(id=7))
     np.testing.assert_allclose(placed.points.max(0) - placed.points.min(0), [0.2, 0.2, 0.2], atol=1e-9)
 
 
@@ -250,9 +252,9 @@ def crashing_build(entry, category, out_dir, config):
     import os
     import signal
 
-    if entry["id"] == 2:
+    if entry.id == 2:
         os.kill(os.getpid(), signal.SIGSEGV)
-    return {"update": {"built": entry["id"]}}
+    return {"update": {"built": entry.id}}
 
 
 @pytest.mark.parametrize("ids", [(2,), (1, 2, 3)], ids=["alone", "among-others"])
@@ -261,10 +263,16 @@ def test_a_build_that_kills_its_process_is_recorded_and_the_rest_go_on(tmp_path,
     recorded failure, never the conversion's end."""
     from phirie_jax.construct.physics.stage import build_objects
 
-    outcomes = build_objects([{"id": i} for i in ids], {}, tmp_path, PhysicsConfig(workers=0), build=crashing_build)
+    outcomes = build_objects([ObjectRecord(id=i) for i in ids], {}, tmp_path, PhysicsConfig(workers=0), build=crashing_build)
     by_id = dict(zip(ids, outcomes))
     assert by_id[2] == {"reason": "the collision process died (CoACD crashed on this mesh: SIGSEGV)"}
     assert all(by_id[i] == {"update": {"built": i}} for i in ids if i != 2)
+
+
+def _started(out, config):
+    """``start_collision`` of the kept objects of the folder's manifest, as the pipeline starts it."""
+    manifest = Manifest.load(out)
+    return start_collision(manifest.objects(), manifest.categories(), out, config)
 
 
 def test_a_collision_started_ahead_gives_what_the_stage_builds_itself(physics, tmp_path):
@@ -272,7 +280,7 @@ def test_a_collision_started_ahead_gives_what_the_stage_builds_itself(physics, t
     with it: the same statuses, parts and mass properties as building inside the stage."""
     _, _, built_here = physics
     out, _ = constructed_folder(tmp_path / "out", seed=0, extra=BAD)
-    job = start_collision(out, C_BACKEND)
+    job = _started(out, C_BACKEND)
     manifest = run_physics(None, out, C_BACKEND, collision=job)
     for ahead, here in zip(manifest["objects"], built_here["objects"]):
         assert ahead["status"] == here["status"] and ahead["collision"] == here["collision"]
@@ -286,7 +294,7 @@ def test_a_collision_started_ahead_gives_what_the_stage_builds_itself(physics, t
 
 def test_a_collision_started_ahead_is_terminated_when_the_work_beside_it_fails(tmp_path):
     out, _ = constructed_folder(tmp_path / "out", seed=0)
-    job = start_collision(out, PhysicsConfig(workers=2))
+    job = _started(out, PhysicsConfig(workers=2))
     with pytest.raises(RuntimeError, match="beside"), job:
         assert wait_for(lambda: job._pool.running_pids(), 60.0), "no collision worker started"
         workers = job._pool.running_pids()

@@ -31,8 +31,9 @@ signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a terminal (
 from pathlib import Path
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.construct.physics.stage import build_objects
+from phirie_jax.records import ObjectRecord
 from tests.construct.physics.test_workers import sleeping_build
-build_objects([{"id": 1}], {}, Path(sys.argv[1]), PhysicsConfig(workers=0), build=sleeping_build)
+build_objects([ObjectRecord(id=1)], {}, Path(sys.argv[1]), PhysicsConfig(workers=0), build=sleeping_build)
 """
 
 
@@ -87,8 +88,9 @@ def environment_build(entry, category, out_dir, config):
 def test_each_worker_gets_its_share_of_the_cores(tmp_path):
     from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
     from phirie_jax.construct.physics.stage import build_objects
+    from phirie_jax.records import ObjectRecord
 
-    entries = [{"id": 1}, {"id": 2}]
+    entries = [ObjectRecord(id=1), ObjectRecord(id=2)]
     shared = build_objects(entries, {}, tmp_path, PhysicsConfig(workers=2), build=environment_build)
     assert [o["update"]["omp"] for o in shared] == [str(max(1, (os.cpu_count() or 1) // 2))] * 2
     told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd=CoacdConfig(threads=3)),
