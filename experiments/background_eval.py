@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax import layout
+from phirie_jax.manifest import Manifest
 from phirie_jax.synthetic.truth import REGION_WEIGHT, background_truth
 
 DEV_SEEDS = (0,)
@@ -83,18 +84,19 @@ def _scene(root: Path, seed: int, fit_config=None, candidates: bool = False) -> 
     return scene
 
 
-def _objects(scene_dir: Path, out: Path) -> dict:
+def _objects(scene_dir: Path, out: Path):
+    """The folder's manifest once the observation and object stages ran (run now when they did not)."""
     from phirie_jax.construct.objects.config import ObjectsConfig
     from phirie_jax.construct.objects.stage import run_objects
     from phirie_jax.construct.physics.settling import candidate_settler
     from phirie_jax.observe.config import ObserveConfig
     from phirie_jax.observe.stage import run_observe
 
-    manifest = out / "manifest.json"
-    if manifest.exists() and "objects" in json.loads(manifest.read_text()):
-        return json.loads(manifest.read_text())
+    if (out / "manifest.json").exists() and Manifest.load(out).get("objects") is not None:
+        return Manifest.load(out)
     run_observe(scene_dir, out, ObserveConfig(), masks="files")
-    return run_objects(scene_dir, out, ObjectsConfig(), settle=candidate_settler())
+    run_objects(scene_dir, out, ObjectsConfig(), settle=candidate_settler())
+    return Manifest.load(out)
 
 
 def held_out_cameras(scene_cameras, seed: int):
@@ -177,32 +179,35 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None, cand
     t0 = time.perf_counter()
     manifest = _objects(scene_dir, base)
     objects_s = time.perf_counter() - t0
-    results = {"seed": seed, "objects": [{"id": o["id"], "status": o["status"]} for o in manifest["objects"]]}
+    results = {"seed": seed, "objects": [{"id": o.id, "status": str(o.status)} for o in manifest.objects()]}
     runs = {}
     for name, (method, iterations) in VARIANTS.items():
         out = work / f"bg{seed}" / name
         shutil.rmtree(out, ignore_errors=True)
         shutil.copytree(base, out)
         t0 = time.perf_counter()
-        m = run_background(scene_dir, out, _variant(method, iterations))
+        run_background(scene_dir, out, _variant(method, iterations))
         wall = time.perf_counter() - t0
-        b = m["background"]
+        m = Manifest.load(out)
+        b = m.background()
         runs[name] = (out, b)
+        refined = b.extra.get("refine")
         results[f"run_{name}"] = {
-            "wall_s": round(wall, 2), "timings": {k: v for k, v in m["timings"].items() if k.startswith("background")},
-            "removed": b["removed"], "filled": b["filled"], "unsupported": b["unsupported_regions"],
-            "failed": b["failed_completions"], "renders": b["renders"],
-            "refine": None if b["refine"] is None else {k: b["refine"][k] for k in (
+            "wall_s": round(wall, 2),
+            "timings": {k: v for k, v in m.timings.values.items() if k.startswith("background")},
+            "removed": b.removed, "filled": b.filled, "unsupported": list(b.unsupported_regions),
+            "failed": list(b.failed_completions), "renders": b.extra.get("renders"),
+            "refine": None if refined is None else {k: refined[k] for k in (
                 "steps", "loss_initial", "loss_final", "first_call_s", "loop_s", "buckets", "reverted")},
             "per_object": [{k: o.get(k) for k in ("id", "status", "removed", "fill", "primary_view", "reason")}
-                           for o in b["objects"]]}
-        print(f"seed {seed} {name}: {wall:.1f} s, removed {b['removed']}, filled {b['filled']}", flush=True)
+                           for o in b.objects]}
+        print(f"seed {seed} {name}: {wall:.1f} s, removed {b.removed}, filled {b.filled}", flush=True)
 
     t = background_truth(scene_dir)
     capture, labels, truth, hidden_g = t.capture, t.labels, t.truth, t.hidden
     out0, b0 = runs[DEFAULT_VARIANT]
     result = read_gaussian_ply(out0 / layout.BACKGROUND)
-    kept = result.subset(np.arange(result.num - b0["filled"]))
+    kept = result.subset(np.arange(result.num - b0.filled))
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(kept.means).query(capture.means)
@@ -222,7 +227,7 @@ def evaluate_seed(seed: int, scene_root: Path, work: Path, fit_config=None, cand
     kept_r = _render(kept, cams, bg)
     cfg = BackgroundConfig().targets
     fills = {name: read_gaussian_ply(out / layout.BACKGROUND) for name, (out, _) in runs.items()}
-    disks = fills["init"].subset(np.arange(fills["init"].num - runs["init"][1]["filled"], fills["init"].num))
+    disks = fills["init"].subset(np.arange(fills["init"].num - runs["init"][1].filled, fills["init"].num))
     disk_r = _render(disks, cams, bg)
     fill_r = {name: _render(data, cams, bg) for name, data in fills.items()}
     rows: dict[str, list[dict]] = {}

@@ -39,7 +39,7 @@ def main() -> None:
 
     import jax
 
-    from phirie_jax.manifest import Manifest
+    from phirie_jax.manifest import Manifest, Timings
     from phirie_jax.pipeline import run_convert
 
     compiles = {"count": 0, "seconds": 0.0}
@@ -54,7 +54,7 @@ def main() -> None:
 
     jax.monitoring.register_event_duration_secs_listener(listener)
     cpu: dict[str, float] = {}
-    timed = Manifest.timed
+    timed = Timings.timed
 
     @contextlib.contextmanager
     def timed_with_cpu(self, name):
@@ -67,29 +67,30 @@ def main() -> None:
             active.remove(name)
         cpu[name] = cpu.get(name, 0.0) + time.process_time() - start
 
-    Manifest.timed = timed_with_cpu
+    Timings.timed = timed_with_cpu
     shutil.rmtree(args.work, ignore_errors=True)
     shutil.copytree(args.objects, args.work, ignore=shutil.ignore_patterns("background*"))
     start = time.perf_counter()
-    manifest = run_convert(args.capture, args.work, masks="auto", stages=("background",), allow_outside_paths=True)
+    run_convert(args.capture, args.work, masks="auto", stages=("background",), allow_outside_paths=True)
     wall = time.perf_counter() - start
-    b = manifest["background"]
-    kept = [o for o in b["objects"] if o["status"] not in ("skipped", "failed")]
-    steps = {k: v for k, v in manifest["timings"].items() if k.startswith("background")}
+    manifest = Manifest.load(args.work)
+    b = manifest.background()
+    kept = [o for o in b.objects if o["status"] not in ("skipped", "failed")]
+    steps = {k: v for k, v in manifest.timings.values.items() if k.startswith("background")}
     emit({"label": args.label, "phirie_jax": str(Path(__import__("phirie_jax").__file__).parent),
           "machine": {"platform": platform.platform(), "jax_backend": jax.default_backend(), "cpus": os.cpu_count(),
                       "load_average_at_end": os.getloadavg()},
-          "objects": len(kept), "gaussians": b["source_gaussians"], "wall_s": round(wall, 1),
+          "objects": len(kept), "gaussians": b.source_gaussians, "wall_s": round(wall, 1),
           "step_s": {k: round(v, 2) for k, v in steps.items()},
           "step_cpu_s": {k: round(v, 2) for k, v in cpu.items() if k.startswith("background")},
           "per_object_s": {k: round(v / max(len(kept), 1), 3) for k, v in steps.items()},
           "compiles": {"count": compiles["count"], "seconds": round(compiles["seconds"], 2)},
           "step_compiles": {k: {"count": v["count"], "seconds": round(v["seconds"], 2)}
                             for k, v in step_compiles.items() if k.startswith("background")},
-          "renders": b.get("renders"), "render_launches": b.get("render_launches"),
-          "frames": len((b.get("targets") or {}).get("frames") or []),
-          "removed": b["removed"], "filled": b["filled"],
-          "statuses": {s: sum(o["status"] == s for o in b["objects"]) for s in {o["status"] for o in b["objects"]}}},
+          "renders": b.extra.get("renders"), "render_launches": b.extra.get("render_launches"),
+          "frames": len((b.extra.get("targets") or {}).get("frames") or []),
+          "removed": b.removed, "filled": b.filled,
+          "statuses": {s: sum(o["status"] == s for o in b.objects) for s in {o["status"] for o in b.objects}}},
          args.out)
 
 

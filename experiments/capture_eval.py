@@ -142,6 +142,7 @@ def build_gsplat(args) -> dict:
 def run_convert_step(args) -> dict:
     import shutil
 
+    from phirie_jax.manifest import Manifest
     from phirie_jax.pipeline import run_convert
     from phirie_jax.progress import PlainDisplay, showing
 
@@ -151,9 +152,9 @@ def run_convert_step(args) -> dict:
     _say(f"phirie convert {scene} --out {out}")
     t0 = time.perf_counter()
     with showing(PlainDisplay(prefix="capture_eval:   ")):
-        manifest = run_convert(scene, out)
+        run_convert(scene, out)
     convert_s = time.perf_counter() - t0
-    objects = [{"id": o.get("id"), "status": o.get("status")} for o in manifest.get("objects", [])]
+    objects = [{"id": o.id, "status": str(o.status)} for o in Manifest.load(out).get("objects", ())]
     _say(f"convert: {convert_s:.1f} s, objects {objects}")
     return {"convert_s": round(convert_s, 3), "objects": objects}
 

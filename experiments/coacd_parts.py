@@ -83,17 +83,18 @@ def output_items(folder: Path) -> list[dict]:
     """The kept objects of a conversion's output folder: canonical mesh, pose, category, up."""
     from phirie_jax.construct.physics.stage import _load_mesh
     from phirie_jax.layout import resolve
-    from phirie_jax.manifest import Manifest, is_kept
+    from phirie_jax.manifest import Manifest
 
-    manifest = Manifest.load_or_create(folder)
+    manifest = Manifest.load(folder)
+    manifest.objects()   # the objects stage ran
     categories = manifest.categories()
     items = []
-    for entry in manifest.require("objects", "the objects stage"):
-        if not is_kept(entry) or not entry.get("mesh") or entry.get("pose") is None:
+    for entry in manifest.kept_objects():
+        if not entry.mesh or entry.pose is None:
             continue
-        vertices, faces = _load_mesh(resolve(folder, entry["mesh"]))
-        items.append({"source": str(folder), "object": entry["id"], "category": categories.get(entry["id"]),
-                      "vertices": vertices, "faces": faces, "pose": entry["pose"], "up": manifest.up().tolist()})
+        vertices, faces = _load_mesh(resolve(folder, entry.mesh))
+        items.append({"source": str(folder), "object": entry.id, "category": categories.get(entry.id),
+                      "vertices": vertices, "faces": faces, "pose": entry.pose.tolist(), "up": manifest.up().tolist()})
     return items
 
 

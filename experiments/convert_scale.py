@@ -36,7 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-from phirie_jax.manifest import ACCEPTED
+from phirie_jax.manifest import Manifest
 from phirie_jax.synthetic.scene import PRESETS
 
 # what a user's capture lacks, beside what discovery_eval leaves out: the truth and a declared frame
@@ -150,36 +150,39 @@ def main() -> None:
         time.sleep(args.sample_s)
     wall = time.perf_counter() - start
     reader.join(timeout=5)
-    manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else {}
+    manifest = Manifest.load_or_create(out)   # empty when the run wrote none
+    objects, timings = manifest.get("objects", ()), manifest.timings.values
+    physics, background, frame = manifest.physics(), manifest.background(), manifest.frame()
+    collisions = {o.id: o.physics["collision"] for o in objects if (o.physics or {}).get("collision")}
+    by_id = {o.id: o for o in objects}
     transforms = json.loads((scene / "transforms.json").read_text())
-    frame = transforms["frames"][0]
+    image = transforms["frames"][0]
     emit({"preset": args.preset, "seed": args.seed, "gaussians": ply_element_counts(capture / "point_cloud.ply")["vertex"],
           "densify": args.densify, "resumed_stages": args.resume,
           "views": len(transforms["frames"]),
-          "image": [frame.get("w", transforms.get("w")), frame.get("h", transforms.get("h"))],
+          "image": [image.get("w", transforms.get("w")), image.get("h", transforms.get("h"))],
           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                       "load_average_at_end": os.getloadavg()},
           "exit_code": child.returncode, "wall_s": round(wall, 1), "peak_rss_gb": round(peak / 2**30, 2),
-          "stage_s": {k: round(v, 1) for k, v in manifest.get("timings", {}).items() if "." not in k},
-          "step_s": {k: round(v, 1) for k, v in manifest.get("timings", {}).items() if "." in k},
+          "stage_s": {k: round(v, 1) for k, v in timings.items() if "." not in k},
+          "step_s": {k: round(v, 1) for k, v in timings.items() if "." in k},
           # of the whole wall; physics.collision runs beside the background stage, so shares overlap
-          "stage_share": {k: round(v / wall, 3) for k, v in manifest.get("timings", {}).items() if "." not in k},
-          "collision_s_per_object": {str(o["id"]): round(o["physics"]["collision"]["total_time_s"], 1)
-                                     for o in manifest.get("objects", [])
-                                     if (o.get("physics") or {}).get("collision", {}).get("total_time_s")},
-          "collision_per_object": {str(o["id"]): {
-              **{k: (o["physics"]["collision"].get("coacd") or {}).get(k) for k in ("tier", "threshold")},
-              "parts": o["physics"]["collision"]["parts"],
-              "hull_volume_ratio": round(o["physics"]["collision"]["hull_volume_ratio"], 4),
-              "stable": (o.get("drop_test") or {}).get("stable")}
-              for o in manifest.get("objects", []) if (o.get("physics") or {}).get("collision")},
-          "collision_workers": (manifest.get("physics") or {}).get("collision_workers"),
-          "background_compiles": (manifest.get("background") or {}).get("compiles"),
-          "background_renders": {k: (manifest.get("background") or {}).get(k) for k in ("renders", "render_launches")},
-          "background_frames": len(((manifest.get("background") or {}).get("targets") or {}).get("frames") or []),
-          "frame": {k: manifest.get("frame", {}).get(k) for k in ("up_source", "scale", "scale_source")},
-          "instances": len(manifest.get("instances", [])),
-          "accepted": sum(o.get("status") == ACCEPTED for o in manifest.get("objects", [])),
+          "stage_share": {k: round(v / wall, 3) for k, v in timings.items() if "." not in k},
+          "collision_s_per_object": {str(i): round(c["total_time_s"], 1) for i, c in collisions.items()
+                                     if c.get("total_time_s")},
+          "collision_per_object": {str(i): {
+              **{k: (c.get("coacd") or {}).get(k) for k in ("tier", "threshold")},
+              "parts": c["parts"], "hull_volume_ratio": round(c["hull_volume_ratio"], 4),
+              "stable": (by_id[i].drop_test or {}).get("stable")} for i, c in collisions.items()},
+          "collision_workers": None if physics is None else physics.collision_workers,
+          "background_compiles": None if background is None else background.extra.get("compiles"),
+          "background_renders": {k: None if background is None else background.extra.get(k)
+                                 for k in ("renders", "render_launches")},
+          "background_frames": 0 if background is None else len((background.extra.get("targets") or {}).get("frames")
+                                                                  or []),
+          "frame": {k: None if frame is None else getattr(frame, k) for k in ("up_source", "scale", "scale_source")},
+          "instances": len(manifest.get("instances", ())),
+          "accepted": len(manifest.accepted_objects()),
           "output_tail": "".join(log[-15:])}, args.out)
 
 

@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.manifest import Manifest
+
 F1_MATCH = 0.9       # issue 14: an accepted object matching no true object at F1@20 ≥ 0.9 is a phantom
 LOCATED_F1_40 = 0.5  # the friendlier column: F1@40 ≥ 0.5
 LEFT_OUT = ("surface.ply", "masks", "candidates")
 ON_ARTEFACT = 0.05   # m: a phantom this close (horizontally) to an added artefact is on it
-KEPT = ("accepted", "unverified")
 
 
 def user_capture(src: Path, dst: Path, leave_out: tuple[str, ...] = LEFT_OUT) -> Path:
@@ -95,34 +96,35 @@ def evaluate_scene(scene_dir: Path, work: Path, metrics, stages: tuple[str, ...]
     except Exception as err:  # noqa: BLE001 — a failed conversion is a row of the table, not the end of the run
         error = f"{type(err).__name__}: {err}"
     wall = time.perf_counter() - t0
-    manifest = json.loads((out / "manifest.json").read_text())
+    manifest = Manifest.load(out)
     truth = json.loads((scene_dir / "gt" / "objects.json").read_text())
-    instances = {i["id"]: i for i in manifest.get("instances", [])}
-    kept = [o for o in manifest.get("objects", []) if o.get("status") in KEPT]
+    instances = {i.id: i for i in manifest.get("instances", ())}
+    kept = manifest.kept_objects()
     f1_20 = np.zeros((len(truth), len(kept)))
     f1_40 = np.zeros_like(f1_20)
     for p, obj in enumerate(kept):
-        mesh = trimesh.load(out / obj["mesh"], force="mesh")
+        mesh = trimesh.load(out / obj.mesh, force="mesh")
         for g, t in enumerate(truth):
-            m = metrics(mesh, obj["pose"], scene_dir / t["mesh"])
+            m = metrics(mesh, obj.pose, scene_dir / t["mesh"])
             f1_20[g, p], f1_40[g, p] = m["f1_20"], m["f1_40"]
     result = scores(f1_20, f1_40)
     artefacts = _artefacts(scene_dir)
     per_object = []
     for p, obj in enumerate(kept):
         g = int(np.argmax(f1_20[:, p])) if len(truth) else None
-        inst = instances.get(obj["id"], {})
-        lo, hi = (np.asarray(b) for b in inst.get("bounds", [[0, 0, 0], [0, 0, 0]]))
+        inst = instances.get(obj.id)
+        lo, hi = np.zeros((2, 3)) if inst is None or inst.bounds is None else inst.bounds
         centre = 0.5 * (lo + hi)
         near = [a["kind"] for a in artefacts if np.linalg.norm(np.asarray(a["centre"][:2]) - centre[:2]) < ON_ARTEFACT]
-        per_object.append({"id": obj["id"], "status": obj["status"], "candidate": obj.get("candidate"),
-                           "views": len(inst.get("views", [])), "confidence": inst.get("confidence"),
+        per_object.append({"id": obj.id, "status": str(obj.status), "candidate": obj.candidate,
+                           "views": 0 if inst is None else len(inst.views),
+                           "confidence": None if inst is None else inst.confidence,
                            "height_m": round(float(hi[2] - lo[2]), 4),
                            "best_truth": truth[g]["id"] if g is not None else None,
                            "best_f1_20": round(float(f1_20[g, p]), 4) if g is not None else None,
                            "best_f1_40": round(float(f1_40[:, p].max()), 4) if len(truth) else None,
                            "phantom": all(q != p for _, q in result["matches"]), "near_artefact": near,
-                           "failed_checks": obj.get("unresolved_checks", [])})
+                           "failed_checks": obj.unresolved_checks or []})
     phantoms = [o for o in per_object if o["phantom"]]
     try:
         observed = evaluate(scene_dir, out)
@@ -137,9 +139,9 @@ def evaluate_scene(scene_dir: Path, work: Path, metrics, stages: tuple[str, ...]
             "supports": [{k: s[k] for k in ("offset", "area_m2", "source")} for s in auto.get("supports", [])],
             "rejected_clusters": [{k: r.get(k) for k in ("points", "height_m", "views", "looking_views", "reason")}
                                   for r in auto.get("rejected_clusters", []) if r.get("points", 0) >= 40],
-            "not_kept": [{"id": o["id"], "status": o.get("status"), "reason": o.get("reason")}
-                         for o in manifest.get("objects", []) if o.get("status") not in KEPT],
-            "timings": {k: round(v, 2) for k, v in manifest.get("timings", {}).items() if "." not in k},
+            "not_kept": [{"id": o.id, "status": str(o.status), "reason": o.reason}
+                         for o in manifest.get("objects", ()) if not o.kept],
+            "timings": {k: round(v, 2) for k, v in manifest.timings.values.items() if "." not in k},
             "per_object": per_object}
 
 
@@ -156,30 +158,31 @@ def real_capture(scene: Path, work: Path, stages: tuple[str, ...]) -> dict:
         run_convert(scene, out, masks="auto", stages=stages)
     except Exception as err:  # noqa: BLE001 — recorded, as for a synthetic scene
         error = f"{type(err).__name__}: {err}"
-    manifest = json.loads((out / "manifest.json").read_text())
-    frame, auto = manifest.get("frame", {}), manifest.get("observe", {}).get("auto", {})
-    instances = {i["id"]: i for i in manifest.get("instances", [])}
+    manifest = Manifest.load(out)
+    frame, auto = manifest.frame(), (manifest.get("observe") or {}).get("auto", {})
+    instances = {i.id: i for i in manifest.get("instances", ())}
 
     def size(inst):
-        lo, hi = (np.asarray(b) for b in inst["bounds"])
+        lo, hi = inst.bounds
         return (hi - lo).round(3).tolist()
 
     return {"scene": str(scene), "error": error, "wall_s": round(time.perf_counter() - t0, 1),
-            "frame": {k: frame.get(k) for k in ("scale", "up_source", "scale_source", "scale_uncertainty")},
+            "frame": {k: None if frame is None else getattr(frame, k)
+                      for k in ("scale", "up_source", "scale_source", "scale_uncertainty")},
             "frame_support": auto.get("frame_support"), "samples": auto.get("samples"),
             "supports": auto.get("supports"), "support_planes": auto.get("support_planes"),
             "clusters": [{k: o.get(k) for k in ("id", "points", "extent_m", "height_m", "views", "looking_views",
                                                 "centroid")} for o in auto.get("objects", [])],
             "rejected_clusters": [{k: r.get(k) for k in ("points", "height_m", "views", "looking_views", "reason")}
                                   for r in auto.get("rejected_clusters", []) if r.get("points", 0) >= 40],
-            "instances": [{"id": i["id"], "views": len(i["views"]), "confidence": i["confidence"],
-                           "points": i["num_points"], "size_m": size(i)} for i in instances.values()],
+            "instances": [{"id": i.id, "views": len(i.views), "confidence": i.confidence,
+                           "points": i.num_points, "size_m": size(i)} for i in instances.values()],
             "rejected_instances": [r for r in manifest.get("observe", {}).get("rejected_proposals", [])
                                    if "instance" in r],
-            "objects": [{"id": o["id"], "status": o.get("status"), "candidate": o.get("candidate"),
-                         "reason": o.get("reason"), "failed_checks": o.get("unresolved_checks", [])}
-                        for o in manifest.get("objects", [])],
-            "timings": {k: round(v, 2) for k, v in manifest.get("timings", {}).items() if "." not in k}}
+            "objects": [{"id": o.id, "status": str(o.status), "candidate": o.candidate,
+                         "reason": o.reason, "failed_checks": o.unresolved_checks or []}
+                        for o in manifest.get("objects", ())],
+            "timings": {k: round(v, 2) for k, v in manifest.timings.values.items() if "." not in k}}
 
 
 def summarize(rows: list[dict]) -> dict:

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.construct.objects.config import ObjectsConfig  # noqa: E402
-from phirie_jax.manifest import ACCEPTED  # noqa: E402
+from phirie_jax.manifest import Manifest, ObjectStatus  # noqa: E402
 from phirie_jax.observe.config import ObserveConfig  # noqa: E402
 
 DEV_SEEDS = (100,)
@@ -289,34 +289,35 @@ def run_row(scene_dir: Path, obs_out: Path, config: ObjectsConfig, out: Path, me
     shutil.rmtree(out, ignore_errors=True)
     shutil.copytree(obs_out, out)
     traces = dict(reg.TRACE_COUNTS)
-    manifest = run_objects(scene_dir, out, config, settle=candidate_settler())
+    run_objects(scene_dir, out, config, settle=candidate_settler())
+    manifest = Manifest.load(out)
     new_traces = {k: reg.TRACE_COUNTS[k] - traces[k] for k in traces}
     gt = {o["id"]: o for o in json.loads((scene_dir / "gt" / "objects.json").read_text())}
     objects, candidates = [], []
-    for obj in manifest["objects"]:
-        row = {"id": obj["id"], "status": obj["status"], "candidate": obj.get("candidate"),
-               "time_s": obj.get("time_s"), "failed_checks": obj.get("unresolved_checks")}
-        if obj["status"] == ACCEPTED:
-            row.update(metrics(trimesh.load(out / obj["mesh"], force="mesh"), obj["pose"], scene_dir / gt[obj["id"]]["mesh"]))
+    for obj in manifest.objects():
+        row = {"id": obj.id, "status": str(obj.status), "candidate": obj.candidate,
+               "time_s": obj.extra.get("time_s"), "failed_checks": obj.unresolved_checks}
+        if obj.accepted:
+            row.update(metrics(trimesh.load(out / obj.mesh, force="mesh"), obj.pose, scene_dir / gt[obj.id]["mesh"]))
         objects.append(row)
-        for c in obj.get("candidates", []):
+        for c in obj.candidates:
             name = c["name"].partition(":")[2]
-            info = truth.get(obj["id"], {}).get(name)
+            info = truth.get(obj.id, {}).get(name)
             if info is None or c["status"] != "ok":
                 continue
-            m = metrics(trimesh.load(c["source"], force="mesh"), c["pose"], scene_dir / gt[obj["id"]]["mesh"])
-            candidates.append({"object": obj["id"], "name": name, **info, "registered_axis": c["scores"]["axis"],
+            m = metrics(trimesh.load(c["source"], force="mesh"), c["pose"], scene_dir / gt[obj.id]["mesh"])
+            candidates.append({"object": obj.id, "name": name, **info, "registered_axis": c["scores"]["axis"],
                                "retry_used": c["retry"]["used"], "failed_checks": [k for k, v in c["checks"].items()
                                                                                   if v["passed"] is False], **m})
     return {"objects": objects, "candidates": candidates, "traces": new_traces,
-            "timings": {k: v for k, v in manifest["timings"].items() if k.startswith("objects")}}
+            "timings": {k: v for k, v in manifest.timings.values.items() if k.startswith("objects")}}
 
 
 def summarize(rows: dict[str, list[dict]], total_objects: int) -> dict:
     table = {}
     for name, runs in rows.items():
         objs = [o for r in runs for o in r["objects"]]
-        kept = [o for o in objs if o["status"] == ACCEPTED]
+        kept = [o for o in objs if o["status"] == ObjectStatus.ACCEPTED]
         times = [o["time_s"] for o in objs if o["time_s"] is not None]
         mean = (lambda xs: round(float(np.mean(xs)), 4) if xs else None)  # noqa: E731
         gt_cands = [c for r in runs for c in r["candidates"] if c["kind"] == "gt"]
@@ -408,7 +409,7 @@ def main() -> None:
         rows: dict[str, list[dict]] = {name: [] for name in configs}
         total = 0
         for scene, obs_out, truth in entries:
-            total += len(json.loads((obs_out / "manifest.json").read_text())["instances"])
+            total += len(Manifest.load(obs_out).instances())
             for name, config in configs.items():
                 t0 = time.perf_counter()
                 run = run_row(scene, obs_out, config, obs_out.parent / name.replace(" ", "_").replace("+", "plus"),

@@ -69,13 +69,14 @@ def _surface_error(vertices, gt_surface, rng) -> dict:
 
 def _row(scene_dir, out, masks, surface_path, config, surface_s=None):
     from phirie_jax.io.scene import load_scene
+    from phirie_jax.manifest import Manifest
     from phirie_jax.observe.evaluate import evaluate
     from phirie_jax.observe.stage import run_observe
 
     scene = load_scene(scene_dir, surface=surface_path)
-    manifest = run_observe(scene_dir, out, config, masks=masks, scene=scene)
+    run_observe(scene_dir, out, config, masks=masks, scene=scene)
     result = evaluate(scene_dir, out, list(scene.cameras))
-    timings = dict(manifest["timings"])
+    timings = dict(Manifest.load(out).timings.values)
     if surface_s is not None:  # the splat-derived surface was built before, once for both rows
         timings["observe"] += surface_s - timings["observe.surface"]
         timings["observe.surface"] = surface_s

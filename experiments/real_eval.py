@@ -48,7 +48,9 @@ import numpy as np
 
 from phirie_jax.frame.resolve import world_camera
 from phirie_jax.io.scene import find_gaussians, load_scene
+from phirie_jax.manifest import Manifest
 from phirie_jax.observe.box_prompt import BoxPrompt, box_masks, encode_png
+from phirie_jax.records import FrameRecord, ObjectRecord, plain
 from phirie_jax.types import Camera
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -126,10 +128,10 @@ def read_prompt(path: Path) -> BoxPrompt:
 # --- frames, rendering, metrics ------------------------------------------------------------
 
 
-def capture_to_world(manifest: dict) -> np.ndarray:
+def capture_to_world(manifest: Manifest) -> np.ndarray:
     """(4, 4) the manifest's ``frame.capture_to_world`` Sim(3); identity when there is none."""
-    matrix = (manifest.get("frame") or {}).get("capture_to_world")
-    return np.eye(4) if matrix is None else np.asarray(matrix, np.float64)
+    matrix = manifest.capture_to_world()
+    return np.eye(4) if matrix is None else matrix
 
 
 def read_photo(camera: Camera, width: int | None) -> np.ndarray:
@@ -154,28 +156,27 @@ def image_scores(rendered: np.ndarray, photo: np.ndarray) -> dict:
     return {"psnr": round(float(psnr(a, b)), 3), "ssim": round(float(ssim(a, b)), 4)}
 
 
-def converted_scene(out_dir: Path, manifest: dict):
+def converted_scene(out_dir: Path, manifest: Manifest):
     """(background + placed objects as one kernel set, {object id: its placed kernel set})."""
     import jax.numpy as jnp
 
     from kernels.gaussians import Gaussians, Sim3, concatenate, transform_gaussians
     from phirie_jax import layout
     from phirie_jax.io.ply import read_gaussian_ply
-    from phirie_jax.manifest import is_kept
 
     background = read_gaussian_ply(out_dir / layout.BACKGROUND)
     degree_k = background.sh.shape[1]
     parts, placed = [background.to_kernel()], {}
-    for obj in manifest.get("objects") or []:
-        if not is_kept(obj) or not obj.get("visual"):
+    for obj in manifest.kept_objects():
+        if not obj.visual:
             continue
-        splats = read_gaussian_ply(layout.resolve(out_dir, obj["visual"]))
+        splats = read_gaussian_ply(layout.resolve(out_dir, obj.visual))
         sh = np.zeros((splats.num, degree_k, 3), np.float32)
         sh[:, : min(degree_k, splats.sh.shape[1])] = splats.sh[:, :degree_k]
         k = splats.to_kernel()
         g = Gaussians(k.means, k.quats, k.log_scales, k.opacity_logits, jnp.asarray(sh))
-        moved = transform_gaussians(g, Sim3.from_matrix(jnp.asarray(obj["pose"], jnp.float32)))
-        placed[int(obj["id"])] = moved
+        moved = transform_gaussians(g, Sim3.from_matrix(jnp.asarray(obj.pose, jnp.float32)))
+        placed[obj.id] = moved
         parts.append(moved)
     return concatenate(parts), placed
 
@@ -317,8 +318,9 @@ def evaluate(args, rest: list[str]) -> dict:
             result["box_masks_s"] = round(time.perf_counter() - t0, 2)
         t0 = time.perf_counter()
         try:
-            manifest = run_convert(copy, out, config, masks=masks, frame=frame_options, prompts=prompts,
-                                   allow_outside_paths=True)   # the working copy links the capture's files
+            run_convert(copy, out, config, masks=masks, frame=frame_options, prompts=prompts,
+                        allow_outside_paths=True)   # the working copy links the capture's files
+            manifest = Manifest.load(out)
             result["convert"] = {"ok": True, "wall_s": round(time.perf_counter() - t0, 2)}
         except Exception as err:  # noqa: BLE001 — recorded: the source is still scored
             result["convert"] = {"ok": False, "wall_s": round(time.perf_counter() - t0, 2),
@@ -328,7 +330,7 @@ def evaluate(args, rest: list[str]) -> dict:
 
         sources = scene.require_gaussians().to_kernel()
         eval_masks = held_out_masks(args, capture, scene, held_out, boxes, out)
-        sim3 = capture_to_world(manifest or {})
+        sim3 = capture_to_world(manifest or Manifest(out))
         converted, placed = (converted_scene(out, manifest) if manifest and (out / "background.ply").is_file()
                              else (None, {}))
         views, ious = [], {i: [] for i in placed}
@@ -351,15 +353,16 @@ def evaluate(args, rest: list[str]) -> dict:
             views.append(row)
         result["views"] = views
         result["visual"] = summary(views)
-        frame = (manifest or {}).get("frame") or {}
-        result["frame"] = {k: frame.get(k) for k in ("capture_to_world", "up_source", "scale_source",
-                                                     "scale_uncertainty")} if frame else None
-        result["instances"] = [{k: i.get(k) for k in ("id", "category", "views", "num_points", "bounds")}
-                               for i in (manifest or {}).get("instances") or []]
+        manifest = manifest or Manifest(out)
+        frame = manifest.frame()
+        result["frame"] = {k: plain(getattr(frame, k)) for k in ("capture_to_world", "up_source", "scale_source",
+                                                                 "scale_uncertainty")} if frame is not None else None
+        result["instances"] = [{k: plain(getattr(i, k)) for k in ("id", "category", "views", "num_points", "bounds")}
+                               for i in manifest.get("instances", ())]
         if prompts:
-            result["prompt_lift"] = ((manifest or {}).get("observe") or {}).get("prompts")
-        result["objects"] = [object_row(o, ious.get(int(o["id"])), frame) for o in (manifest or {}).get("objects") or []]
-        result["timings"] = (manifest or {}).get("timings")
+            result["prompt_lift"] = (manifest.get("observe") or {}).get("prompts")
+        result["objects"] = [object_row(o, ious.get(o.id), frame) for o in manifest.get("objects", ())]
+        result["timings"] = manifest.timings.values or None
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
@@ -369,12 +372,13 @@ def evaluate(args, rest: list[str]) -> dict:
     return result
 
 
-def object_row(obj: dict, ious: list[float] | None, frame: dict) -> dict:
-    pose = np.asarray(obj.get("pose"), np.float64) if obj.get("pose") is not None else None
-    return {"id": obj.get("id"), "status": obj.get("status"), "reason": obj.get("reason"),
-            "candidate": obj.get("candidate"), "drop_test": obj.get("drop_test"),
+def object_row(obj: ObjectRecord, ious: list[float] | None, frame: FrameRecord | None) -> dict:
+    pose = obj.pose
+    return {"id": obj.id, "status": str(obj.status), "reason": obj.reason,
+            "candidate": obj.candidate, "drop_test": obj.drop_test,
             "pose_scale": None if pose is None else round(float(np.cbrt(np.linalg.det(pose[:3, :3]))), 5),
-            "scale_source": frame.get("scale_source"), "scale_uncertainty": frame.get("scale_uncertainty"),
+            "scale_source": None if frame is None else frame.scale_source,
+            "scale_uncertainty": None if frame is None else frame.scale_uncertainty,
             "silhouette_iou": ious, "silhouette_iou_mean": round(float(np.mean(ious)), 4) if ious else None}
 
 

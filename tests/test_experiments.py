@@ -28,6 +28,7 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
 
     from experiments.real_eval import capture_to_world, held_out_split
     from phirie_jax.frame.resolve import world_camera
+    from phirie_jax.manifest import Manifest
     from phirie_jax.geometry import rotation_to_z
     from phirie_jax.types import Camera
 
@@ -43,7 +44,7 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
     uv, depth = camera.project(points)
     uv_w, depth_w = world_camera(camera, sim3).project(points @ sim3[:3, :3].T + sim3[:3, 3])
     assert np.allclose(uv, uv_w) and np.allclose(0.25 * depth, depth_w)
-    assert np.array_equal(capture_to_world({}), np.eye(4))
+    assert np.array_equal(capture_to_world(Manifest("unwritten")), np.eye(4))
     cams = tuple(Camera(f"{k:04d}.jpg", camera.K, w2c, 64, 48) for k in range(17))
     train, held = held_out_split(cams, 8)
     assert [c.name for c in held] == ["0000.jpg", "0008.jpg", "0016.jpg"] and len(train) == 14
