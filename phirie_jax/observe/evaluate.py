@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phirie_jax.manifest import Manifest
 from phirie_jax.observe.associate import voxel_keys
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.types import Camera
@@ -101,9 +102,8 @@ def evaluate(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera] |
     caster = Raycaster(surface.vertices, surface.faces)
     meshes = [trimesh.load(scene_dir / o["mesh"], force="mesh", process=False) for o in objects]
     truth = [visible_samples(mesh, caster, cameras, seed=o["id"]) for mesh, o in zip(meshes, objects)]
-    manifest = json.loads((out_dir / "manifest.json").read_text())
-    instances = manifest.get("instances", [])
-    predicted = [np.load(out_dir / inst["points"])["points"].astype(np.float64) for inst in instances]
+    instances = Manifest.load(out_dir).get("instances", ())
+    predicted = [np.load(out_dir / inst.points)["points"].astype(np.float64) for inst in instances]
     iou = iou_matrix(truth, predicted)
     matches = match(iou)
     per_object = []
@@ -112,10 +112,10 @@ def evaluate(scene_dir: str | Path, out_dir: str | Path, cameras: list[Camera] |
         matched = next((m for m in matches if m[0] == g), None)
         per_object.append({"id": obj["id"], "category": obj["category"], "visible_samples": len(truth[g]),
                            "best_iou": round(float(iou[g, best]), 4) if best is not None else 0.0,
-                           "best_instance": instances[best]["id"] if best is not None else None,
-                           "bounds_iou": (round(aabb_iou(instances[best]["bounds"], meshes[g].bounds), 4)
+                           "best_instance": instances[best].id if best is not None else None,
+                           "bounds_iou": (round(aabb_iou(instances[best].bounds, meshes[g].bounds), 4)
                                           if best is not None else 0.0),
-                           "matched_instance": instances[matched[1]]["id"] if matched else None})
+                           "matched_instance": instances[matched[1]].id if matched else None})
     return {"objects": len(objects), "instances": len(instances), "matched": len(matches),
             "recall": len(matches) / max(len(objects), 1),
             "precision": len(matches) / len(instances) if instances else 0.0,
