@@ -67,7 +67,7 @@ from phirie_jax.frame.gravity import GravityFrame, gravity_frame
 from phirie_jax.frame.resolve import scene_in_world
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.io.scene import load_scene
-from phirie_jax.manifest import ACCEPTED, REJECTED, UNVERIFIED, Manifest, Timings, to_dict
+from phirie_jax.manifest import ACCEPTED, FAILED_OBJECT, REJECTED, UNVERIFIED, Manifest, Timings, to_dict
 from phirie_jax.observe.support import Support, find_support
 from phirie_jax.records import InstanceRecord, ObjectRecord, plain
 from phirie_jax.types import GaussianSplatData, SceneInput
@@ -248,7 +248,7 @@ def _seen(inst: InstanceInput, placed, surface, pose: np.ndarray, tolerance: flo
 def _entry_for(instance_id: int, reason: str | None = None) -> dict:
     """An ``objects`` entry with every contract field (docs/architecture.md "Contracts"), failed until filled in.
     ``collision``, ``mass``, ``friction`` and ``drop_test`` are the physics stage's."""
-    return {"id": int(instance_id), "status": "failed", "reason": reason, "candidate": None, "pose": None,
+    return {"id": int(instance_id), "status": FAILED_OBJECT, "reason": reason, "candidate": None, "pose": None,
             "mesh": None, "visual": None, "collision": [], "mass": None, "friction": None, "checks": {},
             "candidates": [], "drop_test": None}
 
@@ -292,7 +292,7 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     out.update(candidate=chosen["name"], checks=chosen["checks"], unresolved_checks=bad)
     discovered = discovered_rejection(record.source, bad)
     if discovered:
-        return {**out, "status": "rejected", "reason": discovered}
+        return {**out, "status": REJECTED, "reason": discovered}
     if config.strict and bad:
         return {**out, "status": REJECTED, "reason": f"strict: failed checks {bad} on the best candidate"}
     candidate = next(c for c in pool if c.name == chosen["name"])

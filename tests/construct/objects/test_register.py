@@ -13,7 +13,6 @@ from phirie_jax.construct.objects import register as reg
 from phirie_jax.construct.objects.candidates import Candidate
 from phirie_jax.construct.objects.config import ObjectsConfig, RegistrationConfig
 from phirie_jax.construct.objects.stage import register_candidate
-from phirie_jax.manifest import Manifest
 from tests.conftest import shared_data
 from tests.kernels.shapes import in_random_frame, l_shape, partial_view
 
@@ -118,7 +117,7 @@ def _l_candidate_in_a_y_up_frame():
 
 def test_batched_retry_takes_the_right_axis_in_one_call():
     cand, obs, truth = _l_candidate_in_a_y_up_frame()
-    batched = register_candidate(cand, obs, ObjectsConfig(registration=SMALL), Manifest("unused"))
+    batched = register_candidate(cand, obs, ObjectsConfig(registration=SMALL))
     assert batched["kernel_calls"] == 1 and batched["retry"]["used"] and batched["scores"]["axis"] == "+y"
     assert batched["retry"]["own_up_failed"] and batched["retry"]["axes"][0]["axis"] == "+z"
     scale = np.cbrt(np.linalg.det(truth[:3, :3]))
@@ -128,12 +127,12 @@ def test_batched_retry_takes_the_right_axis_in_one_call():
 @pytest.mark.slow
 def test_lazy_retry_and_no_retry_agree_with_the_batched_call():
     cand, obs, truth = _l_candidate_in_a_y_up_frame()
-    batched = register_candidate(cand, obs, ObjectsConfig(registration=SMALL), Manifest("unused"))
+    batched = register_candidate(cand, obs, ObjectsConfig(registration=SMALL))
     lazy_cfg = ObjectsConfig(registration=dataclasses.replace(SMALL, batched_retry=False))
-    lazy = register_candidate(cand, obs, lazy_cfg, Manifest("unused"))
+    lazy = register_candidate(cand, obs, lazy_cfg)
     assert lazy["kernel_calls"] == 2 and lazy["retry"]["used"] and lazy["scores"]["axis"] == "+y"
     np.testing.assert_allclose(batched["gravity_matrix"], lazy["gravity_matrix"], atol=1e-3)
-    no_retry = register_candidate(cand, obs, ObjectsConfig(registration=SMALL, retry=False), Manifest("unused"))
+    no_retry = register_candidate(cand, obs, ObjectsConfig(registration=SMALL, retry=False))
     assert no_retry["scores"]["axis"] == "+z" and not no_retry["retry"]["used"] and no_retry["kernel_calls"] == 1
     assert no_retry["scores"]["energy"] > batched["scores"]["energy"]
 
@@ -154,7 +153,7 @@ def test_a_scanned_y_up_mesh_is_placed_through_the_retry():
     q = partial_view(pts, world.face_normals[face], 1500, rng)
     cand = Candidate("external:mustard", "external", 0, np.asarray(mesh.vertices), np.asarray(mesh.faces), None)
     out = register_candidate(cand, reg.prepare_observation(q, 0.0, True, SMALL),
-                             ObjectsConfig(registration=SMALL), Manifest("unused"))
+                             ObjectsConfig(registration=SMALL))
     assert out["retry"]["used"] and out["scores"]["axis"] in ("+y", "-y")
     m = out["gravity_matrix"]
     placed = reg.sample_model(np.asarray(mesh.vertices) @ m[:3, :3].T + m[:3, 3], mesh.faces, 5000, 0)
