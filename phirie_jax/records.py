@@ -158,8 +158,8 @@ class FrameRecord(_Record):
     SECTION: ClassVar[str] = "frame"
 
     capture_to_world: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)   # (4, 4) Sim(3)
-    up: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)                 # (3,) the world's up (+z)
-    capture_up: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)         # (3,) up in capture coordinates
+    up: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)  # (3,) the world's up (+z)
+    capture_up: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)  # (3,) up in capture coordinates
     scale: float | None = None                                     # metres per capture unit
     up_source: str | None = None
     scale_source: str | None = None
@@ -188,7 +188,7 @@ class InstanceRecord(_Record):
     views: tuple[int, ...] = dataclasses.field(default=(), metadata=_TUPLE)
     view_names: tuple[str, ...] | None = dataclasses.field(default=None, metadata=_TUPLE)
     num_points: int | None = None
-    bounds: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)             # (2, 3) min, max corner
+    bounds: np.ndarray | None = dataclasses.field(default=None, metadata=_MATRIX)  # (2, 3) min, max corner
     source: str | None = None
     points: str | None = None
     confidence: float | None = None
@@ -217,7 +217,8 @@ class ObjectRecord(_Record):
     mass: float | None = None
     friction: float | None = None
     checks: tuple[Check, ...] = dataclasses.field(default=(), metadata=_CHECKS)
-    candidates: tuple[dict, ...] = dataclasses.field(default=(), metadata=_TUPLE)   # every candidate tried, with its scores
+    # every candidate tried, with its scores, checks and pose (the object stage's own records)
+    candidates: tuple[dict, ...] = dataclasses.field(default=(), metadata=_TUPLE)
     drop_test: dict | None = None
     extra: dict = dataclasses.field(default_factory=dict)
 
