@@ -44,6 +44,7 @@ from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.refine import DiskSet, refine
 from phirie_jax.construct.background.removal import ObjectInput, load_object, removal_sets
 from phirie_jax.construct.background.views import CropRenderer, make_crop
+from phirie_jax.construct.background.views import Footprints as CropFootprints
 from phirie_jax.geometry import sigmoid
 from phirie_jax.io.ply import write_gaussian_ply
 from phirie_jax.io.scene import load_scene
@@ -390,8 +391,10 @@ def _frames(run: _Run, removed: np.ndarray, disk_set: DiskSet, fills: list[_Obje
     boxes = _shared_frames(boxes, external_frames, size, margin)
     crops_of = [(oids, make_crop(cameras[v], v, b, (size,), margin)) for v, oids, b in boxes]  # one static size
     normals = disk_set.normals()
+    footprints = CropFootprints.of(data)  # every frame culls the capture: its centres and scales read once
+    tile = run.crops.renderer.config.tile_size
     plans = [targets.plan_frame(data, removed, disk_set.disks, normals, np.isin(disk_set.owner, oids), crop, oids,
-                                np.zeros(3, np.float32), config) for oids, crop in crops_of]
+                                np.zeros(3, np.float32), config, footprints, tile) for oids, crop in crops_of]
     frames = []
     for plan, images in zip(plans, targets.render_plans(plans, run.crops)):
         view = plan.crop.view

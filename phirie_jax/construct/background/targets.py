@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from kernels.raster import RasterConfig
 from kernels.sh import rgb_to_sh_dc
 from phirie_jax.construct.background.config import BackgroundConfig, TargetsConfig
 from phirie_jax.construct.background.exemplar import exemplar_inpaint
@@ -56,9 +57,11 @@ from phirie_jax.construct.background.views import (
     CropImage,
     CropJob,
     CropRenderer,
+    Footprints,
     cull,
     pass_bucket,
     screen_radius_bound,
+    tile_rects,
     view_colours,
 )
 from phirie_jax.errors import SceneInputError
@@ -68,6 +71,8 @@ SHARPNESS_CANDIDATES = 5  # views whose blur is measured for the primary choice
 FILL_ALPHA = 0.5          # the initial disks cover a pixel
 SUPPORT_ALPHA = 0.9       # a pixel shows the support: its slab this opaque, the front this clear
 DEPTH_MARGIN_SIGMAS = 3.0  # the slab's depth band: the disks' depths ± this many (largest) σ plus one cell
+DEPTH_ORDER_SLACK = 1e-3   # relative: a kept Gaussian this close behind a removed one may sort before it on the
+                           # device (float32 depths), so it stays in the removed-weight render
 
 
 @dataclasses.dataclass(frozen=True)
@@ -269,17 +274,19 @@ def frame_box(camera: Camera, disks: GaussianSplatData, removed: GaussianSplatDa
 
 
 def split_layers(data: GaussianSplatData, camera: Camera, kept_idx: np.ndarray, disks: GaussianSplatData,
-                 normals: np.ndarray, slab: float, reach_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 normals: np.ndarray, slab: float, reach_z: float, kept_z: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Kept indices of the front, slab and back layers around the disks in this camera.
 
     By view depth against the disks' band [min − reach_z, max + reach_z] (the renderer sorts by
     centre depth, so outside the band the order is exact); inside the band by the signed height
     over the nearest disk's plane: within ``slab`` is slab, on the camera's side front, else back
-    (a table's underside, a few cm below, is back although its depth is in the band).
+    (a table's underside, a few cm below, is back although its depth is in the band). kept_z: (K,)
+    the view depths of ``kept_idx`` when the caller has them (``screen_radius_bound``'s).
     """
     from scipy.spatial import cKDTree
 
-    _, z, _ = screen_radius_bound(data.subset(kept_idx), camera)
+    z = screen_radius_bound(data.subset(kept_idx), camera)[1] if kept_z is None else kept_z
     if disks.num == 0:
         return kept_idx, kept_idx[:0], kept_idx[:0]
     _, zd, _ = screen_radius_bound(disks, camera)
@@ -368,12 +375,47 @@ def _region_hole_mask(removed_weight: np.ndarray, kept: _KeptRender, r_disks: Cr
     return region, hole, mask & crop.inside
 
 
+def removed_weight_subset(removed: np.ndarray, uv: np.ndarray, z: np.ndarray, r: np.ndarray, size: int,
+                          tile: int) -> np.ndarray:
+    """(K,) bool over a crop's culled Gaussians: those the composited weight of the removed ones
+    depends on. removed: (K,) bool; uv (K, 2), z (K,), r (K,): their pixel centres, view depths and
+    radius bounds (``screen_radius_bound``) in the C × C crop (C = ``size``, ``tile``-pixel tiles).
+
+    The kernel composites each tile's Gaussians in the order of their centre depths, and a pixel
+    sees only its tile's; so the removed weight at every pixel depends only on the removed
+    Gaussians and the kept ones that share a tile with one and sort before the deepest removed
+    one there. Those are kept here (their tiles from the radius bound hold the kernel's; a kept
+    one within ``DEPTH_ORDER_SLACK`` behind is kept too: the device's depths are float32); the
+    render of the subset has the full render's removed weight (up to the float rounding of its
+    chunked compositing), not its colour or depth."""
+    keep = removed.copy()
+    rem, kept = np.flatnonzero(removed), np.flatnonzero(~removed)
+    if len(rem) == 0 or len(kept) == 0:
+        return keep
+    x0, x1, y0, y1 = tile_rects(uv, r, size, tile)
+    for ty in range(-(-size // tile)):
+        row_rem = rem[(y0[rem] <= ty) & (y1[rem] >= ty)]
+        if len(row_rem) == 0:
+            continue
+        row_kept = kept[(y0[kept] <= ty) & (y1[kept] >= ty)]
+        for tx in range(-(-size // tile)):
+            here = row_rem[(x0[row_rem] <= tx) & (x1[row_rem] >= tx)]
+            if len(here) == 0:
+                continue
+            deepest = float(z[here].max())
+            near = row_kept[(x0[row_kept] <= tx) & (x1[row_kept] >= tx)]
+            keep[near[z[near] <= deepest + DEPTH_ORDER_SLACK * abs(deepest)]] = True
+    return keep
+
+
 @dataclasses.dataclass(frozen=True)
 class FramePlan:
     """One frame before any render: its five passes (``CropJob`` each) and what finishing needs.
 
-    Passes, in order: the capture with the removed Gaussians' indicator as a feature (``full``),
-    the kept front, back and slab (colour baked) layers, and the initial disks touching the crop."""
+    Passes, in order: the capture with the removed Gaussians' indicator as a feature (``full``:
+    only its removed weight is read, so it renders only the Gaussians that weight depends on,
+    ``removed_weight_subset``), the kept front, back and slab (colour baked) layers, and the
+    initial disks touching the crop."""
 
     crop: Crop
     objects: list[int]
@@ -383,24 +425,30 @@ class FramePlan:
 
 
 def plan_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: GaussianSplatData, disk_normals: np.ndarray,
-               own: np.ndarray, crop: Crop, objects: list[int], background: np.ndarray, config: BackgroundConfig
-               ) -> FramePlan:
+               own: np.ndarray, crop: Crop, objects: list[int], background: np.ndarray, config: BackgroundConfig,
+               footprints: Footprints | None = None, tile: int = RasterConfig().tile_size) -> FramePlan:
     """The passes of one frame (module docstring). removed: (N,) bool over ``data``; all_disks: (D,)
     every object's initial disks, disk_normals (D, 3); own: (D,) bool, the disks of the frame's objects
     (the frame's loss covers the pixels they can reach, and the fit renders there every disk and kept
-    slab Gaussian that can touch them); background: (3,) colour behind the back layer."""
+    slab Gaussian that can touch them); background: (3,) colour behind the back layer; footprints:
+    ``Footprints.of(data)``, shared by the frames of a pass (made here when not given); tile: the
+    renderer's tile size (``RasterConfig.tile_size``)."""
     cam, fill = crop.camera, config.fill
-    idx = cull(data, cam)
-    kept_idx = idx[~removed[idx]]
+    footprints = footprints or Footprints.of(data)
+    idx, uv, z, r = footprints.cull(cam)
+    gone = removed[idx]
+    kept_idx = idx[~gone]
     here = cull(all_disks, cam)
     disks_here = all_disks.subset(here)
     reach_z = DEPTH_MARGIN_SIGMAS * fill.max_disk_sigma * fill.grid + fill.grid
-    front, slab, back = split_layers(data, cam, kept_idx, disks_here, disk_normals[here], fill.slab, reach_z)
+    front, slab, back = split_layers(data, cam, kept_idx, disks_here, disk_normals[here], fill.slab, reach_z,
+                                     kept_z=z[~gone])
     slab_data = data.subset(slab)
     baked = dataclasses.replace(slab_data, sh=rgb_to_sh_dc(view_colours(slab_data, cam))
                                 .astype(np.float32)[:, None, :], extra={}, layout=())
     zeros = np.zeros(3, np.float32)
-    jobs = (CropJob(data, crop, idx, removed[idx, None].astype(np.float32)),
+    weighed = removed_weight_subset(gone, uv, z, r, crop.size, tile)
+    jobs = (CropJob(data, crop, idx[weighed], gone[weighed, None].astype(np.float32)),
             CropJob(data, crop, front, background=zeros),
             CropJob(data, crop, back, background=np.asarray(background, np.float32)),
             CropJob(baked, crop, background=zeros),

@@ -100,16 +100,25 @@ def screen_radius_bound(data: GaussianSplatData, camera: Camera) -> tuple[np.nda
     λ_max(J W Σ Wᵀ Jᵀ) ≤ ‖J‖² s_max² and ‖J‖ ≤ f / z · (1 + |x/z| + |y/z|) (f the larger focal),
     plus the kernel's screen dilation.
     """
-    means = data.means.astype(np.float64)
+    return _radius_bound(data.means.astype(np.float64), np.exp(data.log_scales.astype(np.float64).max(axis=1)),
+                         camera)
+
+
+def _radius_bound(means: np.ndarray, s_max: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``screen_radius_bound`` of centres (N, 3) float64 with largest σ (N,)."""
     cam = means @ camera.world_to_camera[:3, :3].T + camera.world_to_camera[:3, 3]
     z = cam[:, 2]
     zs = np.where(z > NEAR_PLANE, z, 1.0)
     uv = (cam[:, :2] / zs[:, None]) @ camera.K[:2, :2].T + camera.K[:2, 2]
     focal = float(max(abs(camera.K[0, 0]), abs(camera.K[1, 1])))
     stretch = focal / zs * (1.0 + np.abs(cam[:, 0] / zs) + np.abs(cam[:, 1] / zs))
-    s_max = np.exp(data.log_scales.astype(np.float64).max(axis=1))
     radius = SIGMA_EXTENT * np.sqrt((stretch * s_max) ** 2 + SCREEN_DILATION) + CULL_MARGIN_PX
     return uv, z, radius
+
+
+def _visible(uv: np.ndarray, z: np.ndarray, r: np.ndarray, opaque: np.ndarray, camera: Camera) -> np.ndarray:
+    return (z > NEAR_PLANE) & opaque & (uv[:, 0] + r >= 0) & (uv[:, 0] - r <= camera.width) \
+        & (uv[:, 1] + r >= 0) & (uv[:, 1] - r <= camera.height)
 
 
 def cull(data: GaussianSplatData, camera: Camera, candidates: np.ndarray | None = None) -> np.ndarray:
@@ -118,9 +127,48 @@ def cull(data: GaussianSplatData, camera: Camera, candidates: np.ndarray | None 
     sub = data.subset(idx) if candidates is not None else data
     uv, z, r = screen_radius_bound(sub, camera)
     opaque = sub.opacity_logits.astype(np.float64) >= logit(ALPHA_MIN)
-    keep = (z > NEAR_PLANE) & opaque & (uv[:, 0] + r >= 0) & (uv[:, 0] - r <= camera.width) \
-        & (uv[:, 1] + r >= 0) & (uv[:, 1] - r <= camera.height)
-    return idx[keep]
+    return idx[_visible(uv, z, r, opaque, camera)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Footprints:
+    """What ``screen_radius_bound`` and ``cull`` read of a Gaussian set, prepared once for the
+    many crops of a pass (each frame of the target pass culls the whole capture: converting the
+    centres and scales again per frame, and copying the subset's SH, was most of its host time).
+
+    ``cull`` returns what ``views.cull`` returns, and the bound of those Gaussians as
+    ``screen_radius_bound`` gives it (the same arithmetic)."""
+
+    means: np.ndarray   # (N, 3) float64
+    s_max: np.ndarray   # (N,) largest σ
+    opaque: np.ndarray  # (N,) bool: opacity ≥ ALPHA_MIN
+
+    @classmethod
+    def of(cls, data: GaussianSplatData) -> Footprints:
+        return cls(data.means.astype(np.float64), np.exp(data.log_scales.astype(np.float64).max(axis=1)),
+                   data.opacity_logits.astype(np.float64) >= logit(ALPHA_MIN))
+
+    def cull(self, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Indices (K,) of the Gaussians that can touch the camera's image, their pixel centres
+        (K, 2), view depths (K,) and radius bounds (K,)."""
+        uv, z, r = _radius_bound(self.means, self.s_max, camera)
+        keep = np.flatnonzero(_visible(uv, z, r, self.opaque, camera))
+        return keep, uv[keep], z[keep], r[keep]
+
+
+def tile_rects(uv: np.ndarray, r: np.ndarray, size: int, tile: int) -> tuple[np.ndarray, ...]:
+    """Inclusive tile ranges x0, x1, y0, y1 (each (N,) int) of a C × C crop's ``tile``-pixel tiles
+    that the discs (uv (N, 2), radius r (N,)) touch, as the kernel bins them (``kernels.project``:
+    floor((centre ± radius) / tile), clipped); x1 < x0 or y1 < y0: none. With the radius bound
+    of ``screen_radius_bound`` these hold every tile the kernel puts the Gaussian in."""
+    tiles = -(-size // tile)
+
+    def span(centre):
+        lo = np.floor(np.clip((centre - r) / tile, -1.0, tiles))
+        hi = np.floor(np.clip((centre + r) / tile, -1.0, tiles))
+        return np.maximum(lo, 0).astype(np.int64), np.minimum(hi, tiles - 1).astype(np.int64)
+
+    return (*span(uv[:, 0]), *span(uv[:, 1]))
 
 
 def view_colours(data: GaussianSplatData, camera: Camera) -> np.ndarray:
