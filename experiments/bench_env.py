@@ -43,49 +43,50 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
 
 
 def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
-                  collision: str, max_images: int, loop: bool = True, trace: Path | None = None) -> dict:
+                  collision: str, max_images: int, loop: bool = True, trace: Path | None = None,
+                  pixels_only: bool = False) -> dict:
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
     step_first, step_s = timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
-    render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb,
-                                   repeats)
-    out = batch.render(cameras, max_images=max_images)
-    # the policy's layout: uint8 NHWC made inside the rendering program, left on the device
-    pixels_first, pixels_s = timed(lambda: batch.render(cameras, max_images=max_images, pixels="uint8"),
-                                   repeats)
-    # world 0's body poses in the single environment (as MJX computed them: after a step
-    # they are those of the step's start, in both simulators): the same image
-    env.data.xpos[:] = np.asarray(batch.data.xpos[0])
-    quats = np.asarray(batch.data.xquat[0], np.float64)
-    env.data.xquat[:] = quats / np.linalg.norm(quats, axis=1, keepdims=True)  # float32 in MJX
-    single = np.asarray(env.render(cameras[0]).rgb)
-    vs_single = float(np.max(np.abs(np.asarray(out.rgb[0, 0]) - single)))
     frames = worlds * len(cameras)
     result = {
         "worlds": worlds, "cameras": len(cameras), "steps": steps, "collision": collision,
         "colliding_geoms": int(np.sum((batch.mj_model.geom_contype | batch.mj_model.geom_conaffinity) > 0)),
-        "put_model_s": round(put_s, 2),
-        "step_compile_s": round(step_first - step_s, 2), "render_compile_s": round(render_first - render_s, 2),
+        "put_model_s": round(put_s, 2), "step_compile_s": round(step_first - step_s, 2),
         "world_steps_per_s": round(worlds * steps / step_s, 1),
-        "frames_per_s": round(frames / render_s, 2),
-        "uint8_frames_per_s": round(frames / pixels_s, 2), "uint8_render_compile_s": round(pixels_first - pixels_s, 2),
-        "images_per_render_call": max_images, "moving_gaussians": int(env.object_gaussians.num),
-        "max_abs_rgb_diff_world0_vs_single": vs_single,
-    }
+        "images_per_render_call": max_images, "moving_gaussians": int(env.object_gaussians.num)}
+    print(json.dumps(result), file=sys.stderr, flush=True)
+    if not pixels_only:  # every output of the renderer, float32 (GBs at thousands of frames)
+        render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb, repeats)
+        result.update(render_compile_s=round(render_first - render_s, 2), frames_per_s=round(frames / render_s, 2))
+    # the policy's layout: uint8 NHWC made inside the rendering program, left on the device
+    pixels_first, pixels_s = timed(lambda: batch.render(cameras, max_images=max_images, pixels="uint8"),
+                                   repeats)
+    result.update(uint8_frames_per_s=round(frames / pixels_s, 2),
+                  uint8_render_compile_s=round(pixels_first - pixels_s, 2))
+    # world 0's body poses in the single environment (as MJX computed them: after a step
+    # they are those of the step's start, in both simulators): the same image, to uint8 rounding
+    world0 = np.asarray(batch.render(cameras[:1], max_images=max_images, pixels="uint8")[0, 0], np.float64) / 255.0
+    env.data.xpos[:] = np.asarray(batch.data.xpos[0])
+    quats = np.asarray(batch.data.xquat[0], np.float64)
+    env.data.xquat[:] = quats / np.linalg.norm(quats, axis=1, keepdims=True)  # float32 in MJX
+    single = np.asarray(env.render(cameras[0]).rgb)
+    result["max_abs_rgb_diff_world0_vs_single_uint8"] = round(float(np.max(np.abs(world0 - single))), 4)
     if trace is not None:
         with jax.profiler.trace(str(trace), create_perfetto_trace=True):
             for _ in range(3):
                 jax.block_until_ready(batch.render(cameras, max_images=max_images, pixels="uint8"))
         result["uint8_render_kernels"] = kernel_summary(trace, calls=3)
     if loop:
-        result.update(_loop_baseline(env, worlds, cameras, steps, step_s, render_s))
+        result.update(_loop_baseline(env, worlds, cameras, steps, step_s, pixels_s))
     return result
 
 
 def _loop_baseline(env: Environment, worlds: int, cameras: list[int], steps: int, step_s: float,
                    render_s: float) -> dict:
-    """The same work with the single environment in a loop: worlds × steps, worlds × cameras frames."""
+    """The same work with the single environment in a loop: worlds × steps, worlds × cameras frames
+    (render_s: the batched uint8 render's seconds)."""
     env.reset()
     t0 = time.perf_counter()
     for _ in range(worlds):
@@ -118,6 +119,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     parser.add_argument("--trace", type=Path, default=None,
                         help="profile 3 batched renders of the largest batch here; the JSON gets the time per kernel")
+    parser.add_argument("--pixels-only", action="store_true",
+                        help="time only the uint8 frames a policy reads, not the float32 RasterOutput as well")
     parser.add_argument("--no-loop", action="store_true",
                         help="skip the single-environment loop baseline (minutes at thousands of frames)")
     args = parser.parse_args()
@@ -139,7 +142,8 @@ def main() -> None:
     for worlds in args.worlds:
         result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats,
                                                args.collision, args.max_images, loop=not args.no_loop,
-                                               trace=args.trace if worlds == max(args.worlds) else None))
+                                               trace=args.trace if worlds == max(args.worlds) else None,
+                                               pixels_only=args.pixels_only))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
     emit(result, args.out)
 
