@@ -44,6 +44,7 @@ from phirie_jax.construct.background.views import (
     CropJob,
     CropRenderer,
     batch_size,
+    colourless,
     make_crop,
     pass_bucket,
 )
@@ -237,10 +238,11 @@ def _job_votes(means: np.ndarray, idx: np.ndarray, job: MaskJob, mask: np.ndarra
 
 def _job_images(data: GaussianSplatData, candidates: list[np.ndarray], jobs: list[MaskJob], crops: CropRenderer,
                 pad: int) -> list[CropImage | str]:
-    """The depth renders of the jobs (each object's candidates in its crop), in batches
-    (``CropRenderer.render_many``); a batch the renderer refuses is rendered job by job, and a job
+    """The depth renders of the jobs (each object's candidates in its crop, without colour:
+    ``colourless``), in batches (``CropRenderer.render_many``); a batch the renderer refuses is rendered job by job, and a job
     it still refuses gets the problem (a message): that view does not vote."""
     images: list[CropImage | str] = []
+    data = colourless(data)  # the votes read depth and alpha only
     per = batch_size(pad, len(jobs))
     for start in range(0, len(jobs), per):
         chunk = jobs[start:start + per]

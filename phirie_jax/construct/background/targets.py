@@ -49,7 +49,6 @@ import numpy as np
 from scipy import ndimage
 
 from kernels.raster import RasterConfig
-from kernels.sh import rgb_to_sh_dc
 from phirie_jax.construct.background.config import BackgroundConfig, TargetsConfig
 from phirie_jax.construct.background.exemplar import exemplar_inpaint
 from phirie_jax.construct.background.views import (
@@ -58,11 +57,12 @@ from phirie_jax.construct.background.views import (
     CropJob,
     CropRenderer,
     Footprints,
+    baked,
+    colourless,
     cull,
     pass_bucket,
     screen_radius_bound,
     tile_rects,
-    view_colours,
 )
 from phirie_jax.errors import SceneInputError
 from phirie_jax.types import Camera, GaussianSplatData
@@ -414,8 +414,9 @@ class FramePlan:
 
     Passes, in order: the capture with the removed Gaussians' indicator as a feature (``full``:
     only its removed weight is read, so it renders only the Gaussians that weight depends on,
-    ``removed_weight_subset``), the kept front, back and slab (colour baked) layers, and the
-    initial disks touching the crop."""
+    ``removed_weight_subset``, without colour), the kept front, back and slab layers (their colour
+    in this view baked into the SH DC: ``views.baked``), and the initial disks touching the crop;
+    every pass is DC-only, so the pass moves and evaluates one SH coefficient per Gaussian."""
 
     crop: Crop
     objects: list[int]
@@ -443,17 +444,15 @@ def plan_frame(data: GaussianSplatData, removed: np.ndarray, all_disks: Gaussian
     reach_z = DEPTH_MARGIN_SIGMAS * fill.max_disk_sigma * fill.grid + fill.grid
     front, slab, back = split_layers(data, cam, kept_idx, disks_here, disk_normals[here], fill.slab, reach_z,
                                      kept_z=z[~gone])
-    slab_data = data.subset(slab)
-    baked = dataclasses.replace(slab_data, sh=rgb_to_sh_dc(view_colours(slab_data, cam))
-                                .astype(np.float32)[:, None, :], extra={}, layout=())
+    slab_baked = baked(data, slab, cam)
     zeros = np.zeros(3, np.float32)
     weighed = removed_weight_subset(gone, uv, z, r, crop.size, tile)
-    jobs = (CropJob(data, crop, idx[weighed], gone[weighed, None].astype(np.float32)),
-            CropJob(data, crop, front, background=zeros),
-            CropJob(data, crop, back, background=np.asarray(background, np.float32)),
-            CropJob(baked, crop, background=zeros),
+    jobs = (CropJob(colourless(data), crop, idx[weighed], gone[weighed, None].astype(np.float32)),
+            CropJob(baked(data, front, cam), crop, background=zeros),
+            CropJob(baked(data, back, cam), crop, background=np.asarray(background, np.float32)),
+            CropJob(slab_baked, crop, background=zeros),
             CropJob(disks_here, crop, background=zeros))
-    return FramePlan(crop, objects, jobs, baked, all_disks.subset(np.flatnonzero(own)))
+    return FramePlan(crop, objects, jobs, slab_baked, all_disks.subset(np.flatnonzero(own)))
 
 
 def finish_frame(plan: FramePlan, images: list[CropImage], camera_full: Camera, config: BackgroundConfig,

@@ -27,7 +27,7 @@ import numpy as np
 from kernels.gaussians import Gaussians
 from kernels.project import NEAR_PLANE, SCREEN_DILATION, SIGMA_EXTENT
 from kernels.raster import DEPTH_EPS
-from kernels.sh import sh_basis, sh_degree_from_coeffs
+from kernels.sh import rgb_to_sh_dc, sh_basis, sh_degree_from_coeffs
 from phirie_jax.geometry import logit
 from phirie_jax.render import PAD_OPACITY_LOGIT, Renderer, gaussian_bucket, next_power_of_two
 from phirie_jax.types import Camera, GaussianSplatData
@@ -221,17 +221,47 @@ def padded(data: GaussianSplatData, pad_to: int, sh_coeffs: int | None = None) -
     n = data.num
     if n > pad_to:
         raise ValueError(f"{n} Gaussians do not fit the pass's padded count {pad_to}")
-    k = data.sh.shape[1] if sh_coeffs is None else sh_coeffs
-    out = {"means": np.zeros((pad_to, 3), np.float32), "quats": np.ones((pad_to, 4), np.float32),
-           "log_scales": np.full((pad_to, 3), -10.0, np.float32),
-           "opacity_logits": np.full(pad_to, PAD_OPACITY_LOGIT, np.float32),
-           "sh": np.zeros((pad_to, k, 3), np.float32)}
-    out["means"][:n] = data.means
-    out["quats"][:n] = data.quats
-    out["log_scales"][:n] = data.log_scales
-    out["opacity_logits"][:n] = data.opacity_logits
-    out["sh"][:n, : min(k, data.sh.shape[1])] = data.sh[:, :k]
-    return out
+    out = _pad_rows(1, pad_to, data.sh.shape[1] if sh_coeffs is None else sh_coeffs)
+    _fill_rows(out, 0, data, None)
+    return {k: v[0] for k, v in out.items()}
+
+
+def _pad_rows(batch: int, pad_to: int, sh_coeffs: int) -> dict[str, np.ndarray]:
+    """(batch, pad_to, ...) kernel arrays of the renderer's transparent padding Gaussians."""
+    return {"means": np.zeros((batch, pad_to, 3), np.float32), "quats": np.ones((batch, pad_to, 4), np.float32),
+            "log_scales": np.full((batch, pad_to, 3), -10.0, np.float32),
+            "opacity_logits": np.full((batch, pad_to), PAD_OPACITY_LOGIT, np.float32),
+            "sh": np.zeros((batch, pad_to, sh_coeffs, 3), np.float32)}
+
+
+def _fill_rows(out: dict[str, np.ndarray], b: int, data: GaussianSplatData, index: np.ndarray | None) -> None:
+    """Row ``b`` of ``_pad_rows`` arrays starts with ``data`` (or its ``index`` subset), taken
+    straight from its arrays (no subset copied first); SH coefficients past ``data``'s stay 0 and
+    those past the rows' are dropped."""
+    n = data.num if index is None else len(index)
+    if n > out["means"].shape[1]:
+        raise ValueError(f"{n} Gaussians do not fit the pass's padded count {out['means'].shape[1]}")
+    k = min(out["sh"].shape[2], data.sh.shape[1])
+    for name in ("means", "quats", "log_scales", "opacity_logits"):
+        src = getattr(data, name)
+        out[name][b, :n] = src if index is None else src[index]
+    out["sh"][b, :n, :k] = (data.sh if index is None else data.sh[index])[:, :k]
+
+
+def colourless(data: GaussianSplatData) -> GaussianSplatData:
+    """``data`` with its SH cut to the DC term (a view: nothing is copied), for a pass that reads
+    only alpha, depth and features: the kernel's colour is not in them, and a pass of DC-only
+    Gaussians moves and evaluates a sixteenth of the SH."""
+    return dataclasses.replace(data, sh=data.sh[:, :1], extra={}, layout=())
+
+
+def baked(data: GaussianSplatData, index: np.ndarray, camera: Camera) -> GaussianSplatData:
+    """The ``index`` subset of ``data`` with each Gaussian's colour as this camera sees it baked
+    into its SH DC (``view_colours``): rendered by this camera (or a crop of it: the same centre)
+    it shows the colour of the full SH, to float rounding."""
+    sub = data.subset(index)
+    return dataclasses.replace(sub, sh=rgb_to_sh_dc(view_colours(sub, camera)).astype(np.float32)[:, None, :],
+                               extra={}, layout=())
 
 
 def to_device(array: np.ndarray) -> jax.Array:
@@ -293,8 +323,10 @@ class CropRenderer:
             chunk = jobs[start:start + per]
             empty = dataclasses.replace(chunk[0], index=np.zeros(0, np.int64), features=None)
             batch = chunk + [empty] * (per - len(chunk))
-            arrays = [padded(j.gaussians(), pad_to, sh_coeffs) for j in batch]
-            g = Gaussians(**{k: to_device(np.stack([a[k] for a in arrays])) for k in arrays[0]})
+            arrays = _pad_rows(per, pad_to, sh_coeffs)
+            for b, j in enumerate(chunk):
+                _fill_rows(arrays, b, j.data, j.index)
+            g = Gaussians(**{k: to_device(v) for k, v in arrays.items()})
             feats = np.stack([_features(j.features, j.num, pad_to, num_features) for j in batch])
             bgs = np.stack([np.zeros(3, np.float32) if j.background is None else np.asarray(j.background, np.float32)
                             for j in batch])

@@ -10,12 +10,23 @@ import numpy as np
 import pytest
 
 from phirie_jax.compile_count import CompileCount
-from phirie_jax.construct.background.views import CropJob, CropRenderer, make_crop, padded, pass_bucket
+from phirie_jax.construct.background.views import (
+    CropJob,
+    CropRenderer,
+    _fill_rows,
+    _pad_rows,
+    baked,
+    colourless,
+    make_crop,
+    padded,
+    pass_bucket,
+)
 from phirie_jax.render import pad_gaussians
 from phirie_jax.types import GaussianSplatData
 from tests.construct.background import scene as toy
 
 BATCH_TOL = 1e-5  # batched (vmapped) vs one-by-one renders: the same kernel, at most float rounding apart
+BAKED_TOL = 1e-5  # a colour baked on the host (float64) vs the kernel's SH evaluation (float32)
 
 
 @pytest.fixture(scope="module")
@@ -86,3 +97,41 @@ def test_compile_count_sees_a_new_program():
     with CompileCount() as compiles:
         jnp.arange(7919.0).sum().block_until_ready()   # a shape no other test uses
     assert compiles.count >= 1 and compiles.seconds > 0
+
+
+def _view_dependent(data: GaussianSplatData, seed: int = 5) -> GaussianSplatData:
+    sh = data.sh.copy()
+    sh[:, 1:] = np.random.default_rng(seed).normal(0, 0.15, sh[:, 1:].shape)
+    return dataclasses.replace(data, sh=sh)
+
+
+def test_colourless_and_baked_passes_equal_the_full_sh_renders(toy_data):
+    """A pass without colour renders alpha, depth and features bit for bit as with the full SH; a
+    layer with its colour baked for the camera renders its colour within float rounding."""
+    data, cams = toy_data
+    data = _view_dependent(data)
+    index = np.arange(0, data.num, 2)
+    feats = np.random.default_rng(2).uniform(0, 1, (len(index), 1)).astype(np.float32)
+    crops = [make_crop(cam, k, np.array([10, 8, 70, 60]), (64,), 4) for k, cam in enumerate(cams[:3])]
+    pad = pass_bucket([len(index)])
+    renderer = CropRenderer()
+    full = renderer.render_many([CropJob(data, c, index, feats) for c in crops], pad)
+    dark = renderer.render_many([CropJob(colourless(data), c, index, feats) for c in crops], pad)
+    lit = renderer.render_many([CropJob(baked(data, index, c.camera), c) for c in crops], pad)
+    dc_only = renderer.render_many([CropJob(_dc_only(data), c, index) for c in crops], pad)
+    assert max(np.abs(f.rgb - d.rgb).max() for f, d in zip(full, dc_only)) > 0.05, "the SH shows (else no test)"
+    for f, d, b in zip(full, dark, lit):
+        for field in ("alpha", "depth", "features"):
+            np.testing.assert_array_equal(getattr(d, field), getattr(f, field), err_msg=field)
+        np.testing.assert_allclose(b.rgb, f.rgb, atol=BAKED_TOL)
+
+
+def test_batch_rows_equal_the_host_padding(toy_data):
+    data, _ = toy_data
+    index = np.array([5, 1, 9, 200])
+    rows = _pad_rows(2, 256, 16)
+    _fill_rows(rows, 1, _dc_only(data), index)
+    ref = padded(_dc_only(data).subset(index), 256, sh_coeffs=16)
+    for field, value in ref.items():
+        np.testing.assert_array_equal(rows[field][1], value, err_msg=field)
+        np.testing.assert_array_equal(rows[field][0], padded(data.subset(np.zeros(0, np.int64)), 256, 16)[field])
