@@ -116,10 +116,31 @@ def fit_plane(points: np.ndarray, up: np.ndarray, config: BackgroundConfig, anch
 BOX_SLACK = 1e-9  # metres around a prefilter box: its test never decides a point on its boundary
 
 
-def within_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def within_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: BoxIndex | None = None) -> np.ndarray:
     """Indices of the (N, 3) ``points`` inside the box [lo, hi] grown by ``BOX_SLACK``: a cheap
-    prefilter whose survivors then take the exact test (the box holds every point that can pass it)."""
-    return np.flatnonzero(np.all((points >= lo - BOX_SLACK) & (points <= hi + BOX_SLACK), axis=1))
+    prefilter whose survivors then take the exact test (the box holds every point that can pass it).
+    index: ``BoxIndex(points)``, when many boxes are asked of the same points."""
+    lo, hi = np.asarray(lo) - BOX_SLACK, np.asarray(hi) + BOX_SLACK
+    if index is not None:
+        return index.within(lo, hi)
+    return np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+
+
+class BoxIndex:
+    """Points (N, 3) sorted along x once, so that each box of many (one per object) tests only the
+    points of its x-slab instead of all N: ``within(lo, hi)`` is the sorted indices of the points in
+    the closed box, the same as testing every point."""
+
+    def __init__(self, points: np.ndarray):
+        self.points = points
+        self.order = np.argsort(points[:, 0], kind="stable")
+        self.xs = points[self.order, 0]
+
+    def within(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        start, stop = np.searchsorted(self.xs, lo[0], "left"), np.searchsorted(self.xs, hi[0], "right")
+        slab = self.order[start:stop]
+        pts = self.points[slab]
+        return np.sort(slab[np.all((pts >= lo) & (pts <= hi), axis=1)])
 
 
 def _raster(xy: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
@@ -145,11 +166,11 @@ def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, gri
 
 
 def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray, up: np.ndarray,
-                base: float, config: BackgroundConfig) -> np.ndarray:
+                base: float, config: BackgroundConfig, index: BoxIndex | None = None) -> np.ndarray:
     """Indices of kept Gaussians in the ring around the footprint (module docstring, 1).
 
     kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), up (3,) unit, base: the object's base
-    height along up.."""
+    height along up; index: ``BoxIndex(kept_means)``, shared by the objects."""
 
     rot = rotation_to_z(up)
     obj_g = obj_points @ rot.T
@@ -162,7 +183,7 @@ def ring_points(kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np
     corners = np.stack(np.meshgrid(*[[a, b] for a, b in zip(
         [*origin, base - config.plane.ring_height], [*(origin + np.array(shape) * cell), base + config.plane.ring_height])],
         indexing="ij"), -1).reshape(-1, 3) @ rot
-    nearby = within_box(kept_means, corners.min(0), corners.max(0))
+    nearby = within_box(kept_means, corners.min(0), corners.max(0), index)
     kept_means, kept_opacity = kept_means[nearby], kept_opacity[nearby]
     kept_g = kept_means @ rot.T
     ij = np.floor((kept_g[:, :2] - origin) / cell).astype(np.int64)
@@ -199,10 +220,11 @@ class FillRegion:
 
 
 def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray,
-                removed_means: np.ndarray, config: BackgroundConfig) -> FillRegion:
+                removed_means: np.ndarray, config: BackgroundConfig, index: BoxIndex | None = None) -> FillRegion:
     """The exposed cells of the plane under one object, grown by the margin (module docstring, 3).
 
-    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), removed_means (R, 3) the object's R_i.
+    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), removed_means (R, 3) the object's R_i;
+    index: ``BoxIndex(kept_means)``, shared by the objects.
     """
     from scipy.spatial import cKDTree
 
@@ -227,7 +249,7 @@ def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, 
     corners = np.stack(np.meshgrid([lo[0], hi[0]], [lo[1], hi[1]], [-config.fill.slab, config.fill.slab],
                                    indexing="ij"), -1).reshape(-1, 3)
     corners = plane.point + corners[:, :1] * u + corners[:, 1:2] * v + corners[:, 2:] * plane.normal
-    nearby = within_box(kept_means, corners.min(0), corners.max(0))
+    nearby = within_box(kept_means, corners.min(0), corners.max(0), index)
     kept_means, kept_opacity = kept_means[nearby], kept_opacity[nearby]
     h_kept = plane.height(kept_means)
     on_plane = (np.abs(h_kept) <= config.fill.slab) & (kept_opacity >= config.plane.min_opacity)

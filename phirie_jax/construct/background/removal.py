@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.construct.background.config import BackgroundConfig
+from phirie_jax.construct.background.plane import BoxIndex
 from phirie_jax.construct.background.views import (
     Crop,
     CropImage,
@@ -91,27 +92,31 @@ def load_object(entry: ObjectRecord, instance: InstanceRecord, out_dir: Path) ->
         bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64))
 
 
-def _in_box(means: np.ndarray, box: np.ndarray) -> np.ndarray:
+def _in_box(means: np.ndarray, box: np.ndarray, index: BoxIndex | None = None) -> np.ndarray:
+    """Sorted indices of ``means`` (N, 3) inside the closed ``box`` (2, 3); index: ``BoxIndex(means)``
+    (the same indices, reading only the box's x-slab)."""
+    if index is not None:
+        return index.within(box[0], box[1])
     return np.flatnonzero(np.all((means >= box[0]) & (means <= box[1]), axis=1))
 
 
-def near_points(means: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of ``means`` within ``radius`` of any of ``points`` (R_obs)."""
+def near_points(means: np.ndarray, points: np.ndarray, radius: float, index: BoxIndex | None = None) -> np.ndarray:
+    """Indices of ``means`` within ``radius`` of any of ``points`` (R_obs); index: ``BoxIndex(means)``."""
     from scipy.spatial import cKDTree
 
     if len(points) == 0:
         return np.zeros(0, np.int64)
     box = np.stack([points.min(0) - radius, points.max(0) + radius])
-    idx = _in_box(means, box)
+    idx = _in_box(means, box, index)
     d, _ = cKDTree(points).query(means[idx], distance_upper_bound=radius)
     return idx[np.isfinite(d) & (d <= radius)]
 
 
-def near_surface(means: np.ndarray, caster: Raycaster, radius: float) -> np.ndarray:
+def near_surface(means: np.ndarray, caster: Raycaster, radius: float, index: BoxIndex | None = None) -> np.ndarray:
     """Indices of ``means`` within ``radius`` of the caster's triangle surface or inside it
-    (R_asset; ``Raycaster.within``)."""
+    (R_asset; ``Raycaster.within``); index: ``BoxIndex(means)``."""
     box = np.stack([caster.vertices.min(0) - radius, caster.vertices.max(0) + radius])
-    idx = _in_box(means, box)
+    idx = _in_box(means, box, index)
     if len(idx) == 0:
         return np.zeros(0, np.int64)
     return idx[caster.within(means[idx], radius)]
@@ -311,13 +316,15 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
     pass of batched renders (``mask_votes``); each object's mesh is prepared for ray casting once,
     for R_asset, R_enclosed and R_reach."""
     means = data.means.astype(np.float64)
-    boxes = [_in_box(means, o.bounds(config.removal.bounds_margin)) for o in objects]
+    index = BoxIndex(means)  # every object's boxes read only their x-slab of the capture
+    boxes = [_in_box(means, o.bounds(config.removal.bounds_margin), index) for o in objects]
     masks, mask_records = mask_votes(data, objects, cameras, config, crops, boxes)
     sets, records = [], []
     for o, box, r_mask, mask_record in zip(objects, boxes, masks, mask_records):
-        r_obs = near_points(means, o.q, config.removal.obs_radius)
+        r_obs = near_points(means, o.q, config.removal.obs_radius, index)
         caster = Raycaster(*o.mesh) if o.mesh is not None and len(o.mesh[1]) else None
-        r_asset = near_surface(means, caster, config.removal.asset_radius) if caster else np.zeros(0, np.int64)
+        r_asset = (near_surface(means, caster, config.removal.asset_radius, index) if caster
+                   else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if caster is not None:

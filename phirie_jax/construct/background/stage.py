@@ -195,12 +195,13 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
+    index = fill_mod.BoxIndex(kept.means)  # each object's boxes read only their x-slab of the kept
     supports = {k: Support.from_record(r) for k, r in support_records.items()}
     fills = []
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
         try:
-            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), config)
+            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), config, index)
         except Exception as err:  # noqa: BLE001
             reason = f"{type(err).__name__}: {err}"
             _fail(rec, "failed", reason, err)
@@ -212,13 +213,14 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support
 
 
 def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: Support | None,
-                 config: BackgroundConfig) -> _ObjectFill | None:
+                 config: BackgroundConfig, index: fill_mod.BoxIndex | None = None) -> _ObjectFill | None:
     """One object's plane, fill region and disks (``plane``); None, recorded, when it has none.
-    r_i: (R,) its removed Gaussians; support: what observation found it stands on, if recorded."""
+    r_i: (R,) its removed Gaussians; support: what observation found it stands on, if recorded;
+    index: ``plane.BoxIndex(kept.means)``."""
     rec = run.records[o.id]
     obj_pts = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
     base = support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
-    ring = fill_mod.ring_points(kept.means, kept.opacity, obj_pts, run.up, base, config)
+    ring = fill_mod.ring_points(kept.means, kept.opacity, obj_pts, run.up, base, config, index)
     centre = o.q.mean(0)
     anchor = centre + (base - centre @ run.up) * run.up
     plane, reason = fill_mod.fit_plane(kept.means[ring], run.up, config, anchor)
@@ -235,7 +237,7 @@ def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, suppor
     rec.setdefault("plane_source", "ring")
     rec["plane"] = plane.as_dict()
     region = fill_mod.fill_region(plane, kept.means, kept.opacity, obj_pts,
-                                  run.data.means[r_i].astype(np.float64), config)
+                                  run.data.means[r_i].astype(np.float64), config, index)
     rec["fill"] = {"exposed_cells": region.exposed, "disks": region.num,
                    "kept_spacing_m": round(region.covered_spacing, 5)}
     if region.num == 0:

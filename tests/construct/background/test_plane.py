@@ -32,16 +32,17 @@ def tabletop():
     return kept, rng.uniform(0.3, 1.0, len(kept)), rng.uniform(0, 1, (len(kept), 3)), obj, removed
 
 
-def _everything(points, lo, hi):
+def _everything(points, lo, hi, index=None):
     return np.arange(len(points))
 
 
-def _plane_step(tabletop, config):
+def _plane_step(tabletop, config, indexed=False):
     kept, opacity, rgb, obj, removed = tabletop
-    ring = fill_mod.ring_points(kept, opacity, obj, UP, 0.0, config)
+    index = fill_mod.BoxIndex(kept) if indexed else None
+    ring = fill_mod.ring_points(kept, opacity, obj, UP, 0.0, config, index)
     plane, reason = fill_mod.fit_plane(kept[ring], UP, config, np.zeros(3))
     assert plane is not None, reason
-    region = fill_mod.fill_region(plane, kept, opacity, obj, removed, config)
+    region = fill_mod.fill_region(plane, kept, opacity, obj, removed, config, index)
     on_plane = np.abs(plane.height(kept)) <= config.fill.slab
     colours = fill_mod.neighbour_colours(region.centres, kept[on_plane], rgb[on_plane], config.fill.colour_neighbours)
     return ring, region, colours
@@ -51,6 +52,10 @@ def test_prefiltered_plane_step_equals_the_step_over_every_gaussian(tabletop, mo
     config = BackgroundConfig()
     ring, region, colours = _plane_step(tabletop, config)
     assert len(ring) > 100 and region.num > 10 and region.exposed > 0
+    ring_ix, region_ix, colours_ix = _plane_step(tabletop, config, indexed=True)   # the objects' shared index
+    np.testing.assert_array_equal(ring_ix, ring)
+    np.testing.assert_array_equal(region_ix.centres, region.centres)
+    np.testing.assert_array_equal(colours_ix, colours)
     monkeypatch.setattr(fill_mod, "within_box", _everything)
     ring_all, region_all, colours_all = _plane_step(tabletop, config)
     np.testing.assert_array_equal(ring, ring_all)
@@ -67,3 +72,21 @@ def test_neighbour_colours_fall_back_to_every_gaussian_when_the_box_is_too_small
     order = np.argsort(np.linalg.norm(far, axis=1))[:8]
     got = fill_mod.neighbour_colours(centres, far, rgb, 8)
     np.testing.assert_allclose(got, np.broadcast_to(rgb[order].mean(0), (3, 3)))
+
+
+def test_box_index_finds_what_testing_every_point_finds():
+    from phirie_jax.construct.background.plane import BoxIndex, within_box
+    from phirie_jax.construct.background.removal import _in_box
+
+    rng = np.random.default_rng(4)
+    points = np.round(rng.uniform(-1, 1, (5000, 3)), 2)   # ties on x and points on the boxes' faces
+    index = BoxIndex(points)
+    for _ in range(50):
+        lo = np.round(rng.uniform(-1.2, 1, 3), 2)
+        hi = lo + np.round(rng.uniform(0, 0.6, 3), 2)
+        box = np.stack([lo, hi])
+        expected = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        np.testing.assert_array_equal(index.within(lo, hi), expected)
+        np.testing.assert_array_equal(_in_box(points, box, index), _in_box(points, box))
+        np.testing.assert_array_equal(within_box(points, lo, hi, index), within_box(points, lo, hi))
+    assert len(index.within(np.full(3, 2.0), np.full(3, 3.0))) == 0
