@@ -4,6 +4,11 @@ tree, for a capture as users bring it (no scan mesh, no masks: ``--masks auto``)
     python -m experiments.convert_scale --preset large --seed 11 --scene /tmp/large_scene \\
         --work /tmp/convert_scale --out experiments/results/convert_scale_cpu.json
 
+The 30-object scene on one GPU (issue 30 §5; ``convert_scale_crowded_h100.json``):
+
+    python -m experiments.convert_scale --preset crowded --seed 11 --scene /tmp/crowded_scene \\
+        --work /tmp/convert_scale_crowded --out experiments/results/convert_scale_crowded_h100.json
+
 The scene (a ``phirie synth`` folder, synthesized at ``--scene`` when missing) is linked as a
 user's capture: without ``surface.ply``, ``masks/``, ``candidates/``, ``gt/`` and ``frame.json``
 (up and scale are estimated). ``phirie
@@ -71,6 +76,17 @@ def tree_rss_bytes(root: int) -> int:
     return total
 
 
+def gpu_names() -> list[str]:
+    """The machine's NVIDIA GPUs by name (``nvidia-smi``; none where it is absent). Asked of the
+    driver, not of JAX: JAX in this process would take the GPU memory the conversion needs."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], check=False,
+                             capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [line.strip() for line in out.stdout.splitlines() if line.strip()] if out.returncode == 0 else []
+
+
 def densified(data, copies: int, seed: int = 0):
     """``data`` with each Gaussian replaced by ``copies`` children: centres drawn inside the parent
     (N(0, (0.3 σ)²) along its axes), axes 0.9 σ, the parent's rotation, opacity and colour. The
@@ -122,9 +138,9 @@ def main() -> None:
     out = args.work / "out"
     if args.resume:
         capture = args.work / "capture"
-        command = [sys.executable, "-c", "import sys; from phirie_jax.pipeline import run_convert; "
+        command = [sys.executable, "-c", ("import sys; from phirie_jax.pipeline import run_convert; "
                    "run_convert(sys.argv[1], sys.argv[2], masks='auto', stages=tuple(sys.argv[3:]), "
-                   "allow_outside_paths=True)",
+                   "allow_outside_paths=True)"),
                    str(capture), str(out), *args.resume]
     else:
         capture = user_capture(scene, args.work / "capture", LEFT_OUT)
@@ -161,7 +177,7 @@ def main() -> None:
           "densify": args.densify, "resumed_stages": args.resume,
           "views": len(transforms["frames"]),
           "image": [image.get("w", transforms.get("w")), image.get("h", transforms.get("h"))],
-          "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+          "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "gpus": gpu_names(),
                       "load_average_at_end": os.getloadavg()},
           "exit_code": child.returncode, "wall_s": round(wall, 1), "peak_rss_gb": round(peak / 2**30, 2),
           "stage_s": {k: round(v, 1) for k, v in timings.items() if "." not in k},
