@@ -49,10 +49,12 @@ def ssim_map(a: jax.Array, b: jax.Array, data_range: float = 1.0) -> jax.Array:
     window = gaussian_window()
     c1 = (SSIM_K1 * data_range) ** 2
     c2 = (SSIM_K2 * data_range) ** 2
-    mu_a, mu_b = _blur(a, window), _blur(b, window)
-    var_a = _blur(a * a, window) - mu_a * mu_a
-    var_b = _blur(b * b, window) - mu_b * mu_b
-    cov = _blur(a * b, window) - mu_a * mu_b
+    # the five blurred maps in one convolution (one launch, not five)
+    stacked = _blur(jnp.concatenate([a, b, a * a, b * b, a * b], axis=-1), window)
+    mu_a, mu_b, aa, bb, ab = jnp.split(stacked, 5, axis=-1)
+    var_a = aa - mu_a * mu_a
+    var_b = bb - mu_b * mu_b
+    cov = ab - mu_a * mu_b
     num = (2 * mu_a * mu_b + c1) * (2 * cov + c2)
     den = (mu_a * mu_a + mu_b * mu_b + c1) * (var_a + var_b + c2)
     return jnp.mean(num / den, axis=-1)
