@@ -10,7 +10,9 @@ every ``sh_band_interval`` steps, and after the step numbered ``s`` (counting fr
 - an opacity reset when ``s`` is a multiple of ``opacity_reset_interval`` (and ``s < densify_until``);
 - a checkpoint when ``s`` is a multiple of ``checkpoint_interval``, and at the end.
 
-A step whose tile intersections overflow the buffer is repeated with a larger one. The
+A step whose tile intersections overflow the buffer changes nothing; its view is trained again
+with a larger buffer. A step is dispatched before the one in flight is checked (unless that one
+ends with host work), so the host's work overlaps the device's. The
 training state is a pytree (the padded Gaussians, Adam's state, the densification statistics);
 a checkpoint holds its valid rows, the random generator's state, the view order and what has
 been recorded, written to a temporary name and renamed (``phirie_jax.io.atomic``). Resuming
@@ -53,6 +55,7 @@ CAPACITY_PER_GAUSSIAN = 4      # ... or this many per (padded) Gaussian, if more
 EXTENT_MARGIN = 1.1            # gsplat's scene scale: 1.1 × the largest camera distance from their mean
 RESET_CEILING = 2.0            # an opacity reset clamps opacities to this × min_opacity (gsplat)
 CHECKPOINT_VERSION = 1
+IN_FLIGHT = 2                  # steps dispatched before the oldest is checked (its host work overlaps the next)
 
 _STATIC = ("config", "dssim_weight", "exact_screen_gradient")
 _train_step = jax.jit(splat_fit.train_step, static_argnames=_STATIC)
@@ -277,32 +280,59 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     bg = jnp.asarray(background, jnp.float32)
     step_fn = _train_step_donated if donate else _train_step
     programs: set = set()
-    first_calls, later_calls = [], []  # seconds of steps that compiled their program, and of the others
-    t0 = time.perf_counter()
+    compile_calls, step_times = [], []  # seconds of the calls that compiled a program; between checked steps
+    inflight: list[tuple] = []          # (outputs, view, program key) dispatched, not checked yet
+    t0 = last_checked = time.perf_counter()
     written: _Written | None = None   # the checkpoint being written
+
+    def densifies(s: int) -> bool:  # after the step numbered s (from 1)
+        return config.densify_from <= s < config.densify_until and s % config.densify_interval == 0
+
+    def resets(s: int) -> bool:
+        return bool(config.opacity_reset_interval) and s % config.opacity_reset_interval == 0 and s < config.densify_until
+
+    def saves(s: int) -> bool:
+        return checkpoint is not None and (bool(config.checkpoint_interval and s % config.checkpoint_interval == 0)
+                                           or s == config.steps)
+
+    def host_work_after(s: int) -> bool:
+        """Does the step numbered s end with host work on the parameters?"""
+        return densifies(s) or resets(s) or saves(s)
+
     try:
-        while loop.step < config.steps:
-            if not loop.order:
-                loop.order = list(rng.permutation(views.count))
-            size = int(valid.shape[0])
-            key, t_step = (size, raster.capacity), time.perf_counter()
-            out = step_fn(params, state, learning_rates(config, extent, loop.step), valid, sh_mask(config, loop.step),
-                          views.Ks, views.world_to_cameras, views.images, jnp.int32(loop.order[0]), bg, grad_sum, seen,
-                          config=raster, dssim_weight=config.dssim_weight,
-                          exact_screen_gradient=config.exact_screen_gradient)
-            params, state, loss, grad_sum, seen = out[:5]
-            overflow = bool(out[6])  # waits for the step
-            (later_calls if key in programs else first_calls).append(time.perf_counter() - t_step)
-            programs.add(key)
-            if overflow:  # nothing changed; grow and repeat the step
-                raster = grown_capacity(raster, int(out[7]), "train at a lower resolution or with fewer Gaussians")
-                loop.retries += 1
+        while loop.step < config.steps or inflight:
+            ahead = loop.step + len(inflight)  # steps done once those in flight succeed
+            if (ahead < config.steps and len(inflight) < IN_FLIGHT
+                    and not (inflight and host_work_after(ahead))):
+                # Dispatch before checking the step in flight: the host's work overlaps the device's.
+                if not loop.order:
+                    loop.order = list(rng.permutation(views.count))
+                view = loop.order.pop(0)
+                key, t_call = (int(valid.shape[0]), raster.capacity), time.perf_counter()
+                out = step_fn(params, state, learning_rates(config, extent, ahead), valid, sh_mask(config, ahead),
+                              views.Ks, views.world_to_cameras, views.images, jnp.int32(view), bg, grad_sum, seen,
+                              config=raster, dssim_weight=config.dssim_weight,
+                              exact_screen_gradient=config.exact_screen_gradient)
+                if key not in programs:
+                    compile_calls.append(time.perf_counter() - t_call)
+                    programs.add(key)
+                params, state, _, grad_sum, seen = out[:5]
+                inflight.append((out, view, key))
                 continue
-            loop.order.pop(0)
-            loop.losses.append(float(loss))
+            out, view, key = inflight.pop(0)
+            if bool(out[6]):  # overflowed: the step changed nothing; grow and train its view again
+                if int(out[7]) > raster.capacity:
+                    raster = grown_capacity(raster, int(out[7]), "train at a lower resolution or with fewer Gaussians")
+                loop.retries += 1
+                loop.order.insert(0, view)
+                continue
+            now = time.perf_counter()
+            step_times.append(now - last_checked)
+            last_checked = now
+            loop.losses.append(float(out[2]))
             loop.step += 1
             s = loop.step
-            if config.densify_from <= s < config.densify_until and s % config.densify_interval == 0:
+            if densifies(s):
                 host = unpadded(params, valid)
                 n = host.num
                 grad = np.asarray(grad_sum[:n]) / np.maximum(np.asarray(seen[:n]), 1.0)
@@ -315,11 +345,10 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 state = carry_state(state, source, size)
                 grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
                 loop.events.append({"step": s, "gaussians": host.num, **counts})
-            if config.opacity_reset_interval and s % config.opacity_reset_interval == 0 and s < config.densify_until:
+            if resets(s):
                 params, state = reset_opacity(params, state, RESET_CEILING * config.min_opacity)
                 loop.resets.append(s)
-            if checkpoint is not None and ((config.checkpoint_interval and s % config.checkpoint_interval == 0)
-                                           or s == config.steps):
+            if saves(s):
                 if written is not None:
                     written.wait()
                 written = save_checkpoint(Path(checkpoint), params, valid, state, grad_sum, seen, raster, loop, rng,
@@ -330,7 +359,8 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         if written is not None:
             written.wait()
     wall_s = time.perf_counter() - t0
-    step_s = float(np.median(later_calls)) if later_calls else 0.0
+    step_s = float(np.median(step_times[len(programs):])) if len(step_times) > len(programs) else 0.0
+    compile_s = max(0.0, sum(compile_calls) - len(compile_calls) * step_s)
     gaussians = unpadded(params, valid)
     record = {
         "steps": config.steps, "gaussians": gaussians.num, "initial_gaussians": init.num,
@@ -339,9 +369,8 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         "capacity": raster.capacity, "capacity_retries": loop.retries, "programs": len(programs),
         "backend": jax.default_backend(), "device": str(jax.devices()[0]), "resumed_at": resumed_at,
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
-        # first calls less a step each; ~0 when this process compiled the programs for an earlier run
-        "compile_s": round(max(0.0, sum(first_calls) - len(first_calls) * step_s), 3),
-        "run_s": round(wall_s - sum(first_calls) + len(first_calls) * step_s, 3)}
+        # calls that compiled, less a step each; ~0 when this process compiled the programs for an earlier run
+        "compile_s": round(compile_s, 3), "run_s": round(wall_s - compile_s, 3)}
     return Trained(gaussians, raster, list(loop.losses), record)
 
 
