@@ -198,7 +198,7 @@ def place(model, rotation, scale, centre_xy, base_z):
 
 
 def scored_model(placed, floor):
-    """Which placed model points (Np, 3) E scores: those at or above ``floor`` () — the
+    """Which placed model points E scores: placed (Np, 3), those at or above floor () — the
     observation holds no point lower than that (the support and a band above it are cut from
     Q), so a model point there has nothing it could match. When fewer than
     ``MIN_SCORED_FRACTION`` of the points remain (a flat model) every point is scored.
