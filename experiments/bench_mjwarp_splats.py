@@ -190,9 +190,11 @@ class SplatWorlds:
 
     def place(self, placements) -> None:
         """Every world's splats at ``placements`` (N, K, 4, 4), written into the context's arrays."""
+        import jax
         import warp as wp
 
         position, rotation, _, _ = self._arrays(placements)
+        jax.block_until_ready((position, rotation))   # made on JAX's stream; Warp copies them on its own
         with wp.ScopedDevice(self.device):
             wp.copy(self.rc.splat_position, _to_warp(position, wp.vec3, self.device))
             wp.copy(self.rc.splat_rotation, _to_warp(rotation, wp.quat, self.device))
