@@ -134,15 +134,16 @@ def test_scale_priors_say_they_are_priors_and_fit_the_capture():
 
 def test_the_frame_line_says_when_the_scale_is_a_prior(capsys):
     from phirie_jax.cli import _print_frame
+    from phirie_jax.manifest import SCHEMA, Manifest
 
     record = {"scale": 0.088, "scale_source": "prior: the cameras orbit a point 4.5 units away",
               "scale_uncertainty": 2.2, "capture_up": [0.0, 0.0, 1.0], "up_source": "plumb lines",
               "support": {"source": "splat surface", "height": 0.74}}
-    _print_frame({"frame": record})
+    _print_frame(Manifest.from_json("out", {"schema": SCHEMA, "frame": record}))
     line = capsys.readouterr().out
     assert line.startswith("frame: 0.088 m per capture unit (prior: the cameras orbit") and "×/÷2.2" in line
     assert "support: splat surface at 0.74 m" in line
-    _print_frame({"frame": {**record, "support": None}})
+    _print_frame(Manifest.from_json("out", {"schema": SCHEMA, "frame": {**record, "support": None}}))
     assert "no support plane" in capsys.readouterr().out
 
 
