@@ -58,20 +58,17 @@ def test_training_learns_and_densifies(toy):
 
 def test_steps_that_overflow_are_trained_again(toy, monkeypatch):
     """A buffer far too small: the steps dispatched ahead overflow, change nothing and are trained
-    again with a grown buffer, so the run still makes every step and learns."""
+    again with a grown buffer, so the run still makes every step and its loss falls."""
     from phirie_jax.capture import train
 
     monkeypatch.setattr(train, "MIN_CAPACITY", 64)
     monkeypatch.setattr(train, "CAPACITY_PER_GAUSSIAN", 0)
-    _, cameras, images, start = toy
-    trained = _train(toy)
+    short = dataclasses.replace(TOY, steps=8, densify_from=100, checkpoint_interval=0)
+    trained = _train(toy, config=short)
     record = trained.record
-    assert record["capacity_retries"] >= 1 and trained.raster.capacity > 64
-    assert len(trained.losses) == TOY.steps and np.all(np.isfinite(trained.losses))
-    views = Views.of(images, cameras)
-    before = views_psnr(start, views, (0, 0, 0), RasterConfig(capacity=1 << 14))
-    after = views_psnr(trained.gaussians, views, (0, 0, 0), trained.raster)
-    assert after.mean() > before.mean() + MIN_GAIN_DB, (before, after)
+    assert record["capacity_retries"] >= 2 and trained.raster.capacity > 64  # both steps in flight overflowed
+    assert len(trained.losses) == short.steps and np.all(np.isfinite(trained.losses))
+    assert trained.losses[-1] < trained.losses[0]
 
 
 def test_killed_training_resumes_to_the_same_gaussians(toy, tmp_path):
