@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted(p.stem for p in (ROOT / "experiments").glob("*.py") if p.stem != "__init__")
 
@@ -153,6 +155,7 @@ def test_gsplat_fit_export_reads_back_as_a_fit(tmp_path):
     np.testing.assert_allclose(back.gaussians.sh, data.sh, rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.slow  # 22 s on 2 cores: the probe's slow per-pixel reference
 def test_depth_probe_reference_two_layers():
     """A semi-transparent layer (opacity 0.4) in front of an opaque one: the probe's per-pixel
     reference gives the rasterizer's expected depth there, and its median (accumulated opacity

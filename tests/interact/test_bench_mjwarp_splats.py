@@ -14,6 +14,7 @@ SAME_SCENE_PSNR = 15.0   # dB, world 0 against our render at 64×48 (a camera of
                          # axis drops it to about 10; the two methods' footprints differ at edges)
 
 
+@pytest.mark.slow  # 18 s on 2 cores (MuJoCo Warp's kernels and our render compiled); the camera test below stays
 def test_bench_reports_both_renderers_and_the_same_image(converted, tmp_path):
     from experiments import bench_mjwarp_splats
 
