@@ -395,6 +395,7 @@ def _consistent_points(groups: list[tuple[int, list[Proposal]]], mask_paths: dic
         off_support = np.ones(len(points), bool)
         if support.is_plane and config.support_clearance is not None:
             off_support = frame.to_gravity(points)[:, 2] >= support.height + config.support_clearance
+            support = dataclasses.replace(support, clearance=config.support_clearance)
         kept.append((points[off_support], support,
                      {"single_view": single_view, "outside_silhouette": int((~inside).sum()),
                       "on_support": int((~off_support).sum())}))

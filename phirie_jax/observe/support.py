@@ -36,6 +36,8 @@ class Support:
                           # object: ``PromptMasks.supports``) or "observed points"
     hits: int             # rays that hit the support
     normal: np.ndarray    # (3,) gravity-frame normal of the fitted plane (+z without a fit)
+    clearance: float | None = None  # Q_i's points less than this above the support were cut
+                                    # (``ObserveConfig.support_clearance``); None: nothing was
 
     @property
     def is_plane(self) -> bool:
@@ -45,13 +47,15 @@ class Support:
         return self.source in ("surface", "prompt") and self.hits >= MIN_PLANE_HITS
 
     def as_record(self) -> dict:
+        cut = {} if self.clearance is None else {"clearance": self.clearance}
         return {"height": round(self.height, 6), "source": self.source, "hits": self.hits,
-                "normal": np.round(self.normal, 6).tolist()}
+                "normal": np.round(self.normal, 6).tolist(), **cut}
 
     @staticmethod
     def from_record(record: dict) -> Support:
+        clearance = record.get("clearance")
         return Support(float(record["height"]), str(record["source"]), int(record["hits"]),
-                       np.asarray(record["normal"], np.float64))
+                       np.asarray(record["normal"], np.float64), None if clearance is None else float(clearance))
 
 
 def _ring_origins(q_gravity: np.ndarray) -> np.ndarray:

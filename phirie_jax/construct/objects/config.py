@@ -56,12 +56,12 @@ class RegistrationConfig:
             call takes as long as the +z one, so the retry is free; on a CPU the lazy order saves
             time when +z passes (docs/performance.md, "Registration").
         seed: sampling seed (P on the mesh, subsets of Q).
-        unseen_base: ours — E leaves out the placed candidate's points lower than this above the
-            plane support the instance stands on: the observation keeps no point of Q there
-            (``ObserveConfig.support_clearance``, the same 5 mm), so they have nothing to match
-            (``kernels.registration.scored_model``). Measured on the gsplat-fitted scenes: the flat
-            base of a bowl's extruded candidate, 29 % of its area, was 0.52 cm of its 1.15 cm E.
-            None scores every point (the paper's E).
+        skip_cut_base: ours — E leaves out the placed candidate's points below the cut the
+            observation made above the plane support the instance stands on (recorded with the
+            instance's support, ``ObserveConfig.support_clearance``): the observation keeps no
+            point of Q there, so they have nothing to match (``kernels.registration.scored_model``).
+            Measured on the gsplat-fitted scenes: the flat base of a bowl's extruded candidate,
+            29 % of its area, was 0.52 cm of its 1.15 cm E. False scores every point (the paper's E).
     """
 
     search: SearchSpec = SearchSpec()
@@ -71,14 +71,14 @@ class RegistrationConfig:
     min_obs_bucket: int = 256
     batched_retry: bool = True
     seed: int = 0
-    unseen_base: float | None = 0.005
+    skip_cut_base: bool = True
 
     def __post_init__(self):
         s = self.search
         subset = at_most(s.model_points, "search.model_points", low=1)
         check_ranges(self, {
             "tau": POSITIVE, "icp_max_correspondence": POSITIVE, "hypothesis_batch": AT_LEAST_ONE,
-            "min_obs_bucket": AT_LEAST_ONE, "seed": NON_NEGATIVE, "unseen_base": NON_NEGATIVE,
+            "min_obs_bucket": AT_LEAST_ONE, "seed": NON_NEGATIVE,
             "search.rotation": Choice.of(Rotation),
             "search.num_yaws": AT_LEAST_ONE, "search.scale_multipliers": Each(POSITIVE),
             "search.top_k": at_most(s.num_yaws * len(s.scale_multipliers), "search.num_yaws × scale multipliers", 1),

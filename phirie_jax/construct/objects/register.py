@@ -63,9 +63,10 @@ class Observation:
 
 
 def prepare_observation(q_gravity: np.ndarray, support_z: float, has_support: bool,
-                        config: RegistrationConfig, cut_at_support: bool = False) -> Observation:
-    """Q padded to its bucket. ``cut_at_support``: Q was cut ``config.unseen_base`` above the
-    support (a plane under the instance), so E leaves out the model points below that height."""
+                        config: RegistrationConfig, cut: float | None = None) -> Observation:
+    """Q padded to its bucket. ``cut``: Q's points less than this above the support were cut
+    (the instance's ``Support.clearance``), so E leaves out the model points below that height
+    (with ``config.skip_cut_base``)."""
     n = len(q_gravity)
     bucket = obs_bucket(n, config.min_obs_bucket)
     order = np.random.default_rng(config.seed).permutation(n)
@@ -74,8 +75,8 @@ def prepare_observation(q_gravity: np.ndarray, support_z: float, has_support: bo
     mask = np.zeros(bucket, bool)
     mask[:n] = True
     floor = -np.inf
-    if cut_at_support and config.unseen_base is not None:
-        floor = float(support_z) + config.unseen_base
+    if cut is not None and config.skip_cut_base:
+        floor = float(support_z) + cut
     return Observation(points, mask, n, float(support_z), bool(has_support), floor)
 
 

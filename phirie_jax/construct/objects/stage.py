@@ -305,7 +305,7 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
 def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, timings: Timings) -> list[dict]:
     """Every candidate of the pool registered and checked, its placement as a world pose."""
     obs = prepare_observation(inst.points, inst.support.height, inst.support.source in ("surface", "prompt"),
-                              config.registration, cut_at_support=inst.support.is_plane)
+                              config.registration, cut=inst.support.clearance)
     entries = [register_candidate(c, obs, config, timings) for c in pool]
     for e in entries:
         e["pose"] = None if "gravity_matrix" not in e else inst.frame.matrix() @ e["gravity_matrix"]

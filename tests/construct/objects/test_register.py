@@ -31,14 +31,14 @@ def test_buckets_and_observation_layout():
 
 
 def test_the_scoring_floor_is_the_observations_cut_above_a_plane_support():
-    """Q was cut ``unseen_base`` above a plane support: E leaves out the model below that height;
-    without a cut (no plane under the instance) or with ``unseen_base`` None, nothing is left out."""
+    """Q was cut 5 mm above a plane support (the cut recorded with its support): E leaves out the
+    model below that height; without a cut (no plane under the instance) or with
+    ``skip_cut_base`` off, nothing is left out."""
     q = np.random.default_rng(0).random((300, 3))
-    assert reg.prepare_observation(q, 0.2, True, SMALL, cut_at_support=True).floor == pytest.approx(
-        0.2 + SMALL.unseen_base)
+    assert reg.prepare_observation(q, 0.2, True, SMALL, cut=0.005).floor == pytest.approx(0.205)
     assert reg.prepare_observation(q, 0.2, True, SMALL).floor == -np.inf
-    paper = dataclasses.replace(SMALL, unseen_base=None)
-    assert reg.prepare_observation(q, 0.2, True, paper, cut_at_support=True).floor == -np.inf
+    paper = dataclasses.replace(SMALL, skip_cut_base=False)
+    assert reg.prepare_observation(q, 0.2, True, paper, cut=0.005).floor == -np.inf
 
 
 def test_a_placed_base_below_the_floor_does_not_count_against_a_candidate():
@@ -56,7 +56,7 @@ def test_a_placed_base_below_the_floor_does_not_count_against_a_candidate():
     model = reg.sample_model(mesh.vertices, mesh.faces, SMALL.points, 0)
     placement = np.eye(4)
     whole = reg.score_placement(model, reg.prepare_observation(q, 0.0, True, SMALL), placement, SMALL)
-    cut = reg.score_placement(model, reg.prepare_observation(q, 0.0, True, SMALL, cut_at_support=True),
+    cut = reg.score_placement(model, reg.prepare_observation(q, 0.0, True, SMALL, cut=0.005),
                               placement, SMALL)
     assert cut.model_to_obs < whole.model_to_obs - 0.002 and cut.energy < whole.energy
     assert cut.obs_to_model == pytest.approx(whole.obs_to_model, abs=2e-4)
@@ -168,3 +168,17 @@ def test_the_search_is_the_kernels_spec_with_the_per_call_fields_set_by_the_stag
     for field, value in (("axes", (0,)), ("snap_to_support", True), ("hypothesis_batch", 7)):
         with pytest.raises(ValueError, match=f"registration.search.{field}"):
             RegistrationConfig(search=SearchSpec(**{field: value}))
+
+
+def test_the_cut_travels_with_the_instances_support():
+    """The observation records its cut with the support it made it above; the objects stage reads it
+    back from there (an older record without one: no cut, E scores every point)."""
+    from phirie_jax.observe.support import Support
+
+    cut = Support(0.2, "surface", 40, np.array([0.0, 0.0, 1.0]), 0.005)
+    back = Support.from_record(cut.as_record())
+    assert back.clearance == 0.005 and back.is_plane
+    older = {k: v for k, v in cut.as_record().items() if k != "clearance"}
+    assert Support.from_record(older).clearance is None
+    q = np.random.default_rng(1).random((300, 3))
+    assert reg.prepare_observation(q, back.height, True, SMALL, cut=back.clearance).floor == pytest.approx(0.205)
