@@ -340,6 +340,13 @@ def summarize(rows: dict[str, list[dict]], total_objects: int) -> dict:
 
 
 def main() -> None:
+    from phirie_jax.io.camera import outside_paths_allowed
+
+    with outside_paths_allowed():  # the evaluated scenes are folders of symlinks to the synthesized ones
+        evaluate()
+
+
+def evaluate() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="*", default=[5001, 5002, 5003, 5004])
     parser.add_argument("--ycb-seeds", type=int, nargs="*", default=[1, 2, 3])
