@@ -281,7 +281,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     step_fn = _train_step_donated if donate else _train_step
     programs: set = set()
     compile_calls, step_times = [], []  # seconds of the calls that compiled a program; between checked steps
-    inflight: list[tuple] = []          # (outputs, view, program key) dispatched, not checked yet
+    inflight: list[tuple] = []          # (outputs, view) dispatched, not checked yet
     t0 = last_checked = time.perf_counter()
     written: _Written | None = None   # the checkpoint being written
 
@@ -317,9 +317,9 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                     compile_calls.append(time.perf_counter() - t_call)
                     programs.add(key)
                 params, state, _, grad_sum, seen = out[:5]
-                inflight.append((out, view, key))
+                inflight.append((out, view))
                 continue
-            out, view, key = inflight.pop(0)
+            out, view = inflight.pop(0)
             if bool(out[6]):  # overflowed: the step changed nothing; grow and train its view again
                 if int(out[7]) > raster.capacity:
                     raster = grown_capacity(raster, int(out[7]), "train at a lower resolution or with fewer Gaussians")
@@ -359,7 +359,8 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         if written is not None:
             written.wait()
     wall_s = time.perf_counter() - t0
-    step_s = float(np.median(step_times[len(programs):])) if len(step_times) > len(programs) else 0.0
+    # the median leaves out the few intervals that held a compilation (one per program)
+    step_s = float(np.median(step_times)) if step_times else 0.0
     compile_s = max(0.0, sum(compile_calls) - len(compile_calls) * step_s)
     gaussians = unpadded(params, valid)
     record = {
