@@ -11,8 +11,12 @@ from phirie_jax.errors import SceneInputError
 
 pytest.importorskip("pycolmap")
 
-CENTRE_TOL = 0.01   # of the scene size (the largest distance between two true camera centres)
-ROTATION_TOL = 1.0  # degrees
+# Twelve 320 px photos pin the cameras only as well as their focal length, which SfM estimates from
+# the pictures (no EXIF): measured 0.43 % long, the arc's end cameras 0.6-1.0 % of the scene size
+# from the truth over threads 1-2 and seeds 0-3 here, 1.13 % on another CPU, rotations 0.5-0.7°.
+CENTRE_TOL = 0.02   # of the scene size (the largest distance between two true camera centres)
+ROTATION_TOL = 1.5  # degrees
+FOCAL_TOL = 0.02    # relative
 
 
 def sim3_residuals(estimated, truth) -> tuple[np.ndarray, np.ndarray]:
@@ -47,6 +51,8 @@ def test_sfm_recovers_the_cameras_of_rendered_photos(arc_photos, tmp_path):
     size = max(np.linalg.norm(a.center - b.center) for a in truth for b in truth)
     assert centres.max() < CENTRE_TOL * size, centres / size
     assert angles.max() < ROTATION_TOL, angles
+    focal = truth[0].K[0, 0]
+    assert all(abs(c.K[0, 0] / focal - 1) < FOCAL_TOL for c in result.cameras), [c.K[0, 0] for c in result.cameras]
     assert len(result.points) > 100 and result.colours.dtype == np.uint8
 
 
