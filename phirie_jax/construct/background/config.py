@@ -59,6 +59,15 @@ class RemovalConfig:
             from its centre, ends more than ``reach_depth`` inside the placed asset (an optimizer's
             needle across the object/support contact, its centre beyond the radii) is removed too:
             kept, its hidden half would show as a streak once the object moves.
+        support_band / contact_reach: ours — R_obs ∪ R_asset ∪ R_mask spares the support's own
+            surface (Gaussians at most ``support_band`` above the object's support height, or
+            below it) farther than ``contact_reach`` across up from the object's contact (its points
+            within 2 × ``support_band`` of the support): a draped or soft support is its own
+            texture there, and a flat fill is a worse copy of it; 0 spares nothing.
+        spare_seen_elsewhere: ours — R_obs ∪ R_asset spares a Gaussian that ``mask_votes`` of the
+            mask views saw, unoccluded, outside the instance's mask (it is something else: the
+            support around the object, a neighbour, a post in front), unless it is one of the
+            object's own visual Gaussians.
         statuses: objects with these statuses are removed; the others stay in the background.
     """
 
@@ -72,13 +81,17 @@ class RemovalConfig:
     enclosed_lift: float = 0.01
     reach_sigmas: float = 2.0
     reach_depth: float = 0.005
+    support_band: float = 0.01
+    contact_reach: float = 0.01
+    spare_seen_elsewhere: bool = True
     statuses: tuple[str, ...] = ("accepted", "unverified")
 
     def __post_init__(self):
         check_ranges(self, {
             "obs_radius": NON_NEGATIVE, "asset_radius": NON_NEGATIVE, "mask_votes": AT_LEAST_ONE,
             "bounds_margin": NON_NEGATIVE, "mask_views": AT_LEAST_ONE, "occlusion_tolerance": NON_NEGATIVE,
-            "enclosed_directions": NON_NEGATIVE, "enclosed_lift": NON_NEGATIVE, "reach_sigmas": NON_NEGATIVE, "reach_depth": NON_NEGATIVE})
+            "enclosed_directions": NON_NEGATIVE, "enclosed_lift": NON_NEGATIVE, "reach_sigmas": NON_NEGATIVE, "reach_depth": NON_NEGATIVE,
+            "support_band": NON_NEGATIVE, "contact_reach": NON_NEGATIVE})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,6 +170,12 @@ class FillConfig:
         colour_neighbours: disks no target sees take the mean colour of this many nearest kept plane
             Gaussians ("neighbouring observations").
         max_disks: per object; more is a failed completion (an implausibly large exposed region).
+        see_through_votes: ours — a fill cell is not laid where this many training views saw kept
+            surface behind it (``construct.background.seethrough``: past a draped support's edge);
+            0 lays every cell.
+        see_through_depth: ours — ... more than this behind the cell's centre, metres.
+        see_through_views: ours — the views that hold most of an object's cells vote, at most this many.
+        see_through_crop: ours — pixels a side of the crop a voting view renders around the cells.
     """
 
     grid: float = 0.005
@@ -169,9 +188,15 @@ class FillConfig:
     init_opacity: float = 0.9
     colour_neighbours: int = 8
     max_disks: int = 40_000
+    see_through_votes: int = 2
+    see_through_depth: float = 0.02
+    see_through_views: int = 32
+    see_through_crop: int = 128
 
     def __post_init__(self):
         check_ranges(self, {
+            "see_through_votes": NON_NEGATIVE, "see_through_depth": NON_NEGATIVE,
+            "see_through_views": AT_LEAST_ONE, "see_through_crop": Range(8),
             "grid": POSITIVE, "margin": NON_NEGATIVE, "cover_factor": POSITIVE, "slab": NON_NEGATIVE,
             "disk_sigma": POSITIVE, "disk_thickness": POSITIVE, "max_disk_sigma": Range(0.25, bound="the lower limit, ¼"),
             "init_opacity": OPEN_FRACTION, "colour_neighbours": AT_LEAST_ONE, "max_disks": AT_LEAST_ONE})

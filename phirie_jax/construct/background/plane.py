@@ -13,7 +13,8 @@ Names in ``code`` are fields of ``PlaneConfig`` (the plane) and ``FillConfig`` (
 3. Cells of a ``grid`` lattice on the plane. A cell is *covered* when a kept Gaussian of the
    plane's slab lies within ``cover_factor`` × their median spacing. A cell is *supported* when
    it lies inside the closure of what is known to be plane there: covered cells, the object's
-   contact base (asset points within ``slab`` of the plane) and removed Gaussians of the slab
+   contact base (observed points, and asset points when the shape passed its registration check,
+   within ``slab`` of the plane) and removed Gaussians of the slab
    (the plane was captured there). Exposed = supported, not covered and under the object's
    shadow (its points and removed Gaussians projected on the plane). The fill covers the
    exposed cells grown by ``margin``; past a table's edge nothing is supported, so nothing is
@@ -154,7 +155,8 @@ def _raster(xy: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, i
 
 def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, grid: float, seed: int) -> np.ndarray:
     """Q_i and (when registered) points on the placed asset's surface dense enough to leave no gaps
-    in its shadow on a ``grid`` raster."""
+    in its shadow on a ``grid`` raster. Pass ``mesh`` None for the evidence of where the object
+    meets its support when the shape failed its registration check (``ObjectInput.contact_mesh``)."""
     if mesh is None:
         return q
     import trimesh
@@ -210,6 +212,10 @@ class FillRegion:
     def num(self) -> int:
         return len(self.centres)
 
+    def subset(self, keep: np.ndarray) -> FillRegion:
+        """The fill without the cells where ``keep`` (K,) bool is False (``exposed`` as it was)."""
+        return dataclasses.replace(self, centres=self.centres[keep])
+
     def quats(self) -> np.ndarray:
         """(K, 4) wxyz rotation with columns (u, v, normal)."""
         from phirie_jax.rotations import matrix_to_quat
@@ -220,11 +226,14 @@ class FillRegion:
 
 
 def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, obj_points: np.ndarray,
-                removed_means: np.ndarray, config: BackgroundConfig, index: BoxIndex | None = None) -> FillRegion:
+                removed_means: np.ndarray, config: BackgroundConfig, index: BoxIndex | None = None,
+                contact_points: np.ndarray | None = None) -> FillRegion:
     """The exposed cells of the plane under one object, grown by the margin (module docstring, 3).
 
-    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3), removed_means (R, 3) the object's R_i;
-    index: ``BoxIndex(kept_means)``, shared by the objects.
+    kept_means (K, 3), kept_opacity (K,), obj_points (P, 3) its shadow, removed_means (R, 3) the
+    object's R_i; index: ``BoxIndex(kept_means)``, shared by the objects; contact_points (C, 3):
+    the points whose base is evidence of the plane (default ``obj_points``; an unverified shape's
+    base is a guess, and past a support's edge it would lay the fill in the air).
     """
     from scipy.spatial import cKDTree
 
@@ -264,7 +273,9 @@ def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, 
         spacing, covered = float("nan"), np.zeros(shape, bool)
 
     removed_slab = removed_means[np.abs(plane.height(removed_means)) <= config.fill.slab]
-    base = obj_points[(h_obj > -config.fill.slab) & (h_obj <= config.fill.slab)]
+    contact = obj_points if contact_points is None else contact_points
+    h_contact = plane.height(contact)
+    base = contact[(h_contact > -config.fill.slab) & (h_contact <= config.fill.slab)]
     known = covered | _raster(plane_xy(removed_slab), origin, cell, shape) | _raster(plane_xy(base), origin, cell, shape)
     supported = ndimage.binary_fill_holes(ndimage.binary_closing(known, iterations=2, border_value=0))
     shadow = ndimage.binary_fill_holes(ndimage.binary_closing(_raster(shadow_pts, origin, cell, shape), iterations=2))

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.construct.background.config import BackgroundConfig
-from phirie_jax.construct.background.plane import BoxIndex
+from phirie_jax.construct.background.plane import BoxIndex, object_points
 from phirie_jax.construct.background.views import (
     Crop,
     CropImage,
@@ -50,12 +50,14 @@ from phirie_jax.construct.background.views import (
     pass_bucket,
 )
 from phirie_jax.io.mesh import read_mesh
+from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.layout import resolve
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.records import InstanceRecord, ObjectRecord
 from phirie_jax.types import Camera, GaussianSplatData
 
 DEPTH_ALPHA = 0.5  # rendered alpha below this at a pixel: nothing of the object there to occlude
+OWN_GAUSSIAN = 1e-5  # metres: a capture Gaussian this close to one of the object's visual Gaussians is that one
 
 
 @dataclasses.dataclass
@@ -70,6 +72,16 @@ class ObjectInput:
     mask_paths: list[Path]                 # (V,) mask image of that view
     bboxes: np.ndarray                     # (V, 4) x0 y0 x1 y1 of the instance in that mask
     pixels: np.ndarray                     # (V,) mask area
+    shape_verified: bool = True            # the asset passed its registration check
+    visual_means: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))  # (G, 3) its
+    # visual Gaussians' centres placed in the scene: the captured ones are the capture's own
+
+    @property
+    def contact_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The placed asset as evidence of where the object meets its support: only a shape that
+        fits what was observed (an unverified one's base is a guess, e.g. an extrusion down to the
+        support past its edge)."""
+        return self.mesh if self.shape_verified else None
 
     def bounds(self, margin: float) -> np.ndarray:
         """(2, 3) Q_i ∪ asset box grown by ``margin``."""
@@ -85,11 +97,16 @@ def load_object(entry: ObjectRecord, instance: InstanceRecord, out_dir: Path) ->
         vertices, faces = read_mesh(resolve(out_dir, entry.mesh))
         pose = np.asarray(entry.pose, np.float64)
         mesh = (vertices @ pose[:3, :3].T + pose[:3, 3], faces)
+    visual = np.zeros((0, 3))
+    if entry.visual and entry.pose is not None:
+        pose = np.asarray(entry.pose, np.float64)
+        visual = read_gaussian_ply(resolve(out_dir, entry.visual)).means.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
     return ObjectInput(
         id=int(entry.id), q=np.asarray(data["points"], np.float64), mesh=mesh,
         views=np.asarray(data["views"], np.int64), labels=np.asarray(data["labels"], np.int64),
         mask_paths=[resolve(out_dir, str(p)) for p in data["mask_paths"]],
-        bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64))
+        bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64),
+        shape_verified=getattr(entry.check("registration"), "passed", None) is not False, visual_means=visual)
 
 
 def _in_box(means: np.ndarray, box: np.ndarray, index: BoxIndex | None = None) -> np.ndarray:
@@ -217,9 +234,10 @@ def _job_mask(job: MaskJob, cameras: tuple[Camera, ...], masks: dict[Path, np.nd
 
 
 def _job_votes(means: np.ndarray, idx: np.ndarray, job: MaskJob, mask: np.ndarray, image: CropImage,
-               cameras: tuple[Camera, ...], config: BackgroundConfig) -> tuple[np.ndarray, np.ndarray]:
+               cameras: tuple[Camera, ...], config: BackgroundConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One view's votes for the candidates ``idx`` (K,) of one object, from its mask and the crop
-    render of those candidates: (K,) bool in the mask and visible, (K,) bool in the mask.
+    render of those candidates: (K,) bool in the mask and visible, (K,) bool in the mask, (K,) bool
+    visible outside the mask (the view saw it as something else).
     means: (N, 3) float64, every Gaussian's centre."""
     cam = cameras[job.view]
     depth = image.depth_normalized
@@ -238,7 +256,9 @@ def _job_votes(means: np.ndarray, idx: np.ndarray, job: MaskJob, mask: np.ndarra
     visible = np.zeros(len(idx), bool)
     r, c = row[ok], col[ok]
     visible[ok] = (alpha[r, c] < DEPTH_ALPHA) | (z[ok] <= depth[r, c] + config.removal.occlusion_tolerance)
-    return in_mask & visible, in_mask
+    outside = np.zeros(len(idx), bool)
+    outside[ok] = ~in_mask[ok]
+    return in_mask & visible, in_mask, outside & visible
 
 
 def _job_images(data: GaussianSplatData, candidates: list[np.ndarray], jobs: list[MaskJob], crops: CropRenderer,
@@ -278,6 +298,7 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
     pad = pass_bucket([len(c) for c in candidates])
     votes = [np.zeros(len(c), np.int64) for c in candidates]
     seen = [np.zeros(len(c), np.int64) for c in candidates]
+    elsewhere = [np.zeros(len(c), np.int64) for c in candidates]
     used: list[list[int]] = [[] for _ in objects]
     problems: list[list[str]] = [[] for _ in objects]
     masks: dict[Path, np.ndarray | str] = {}
@@ -295,9 +316,10 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
         if isinstance(image, str):
             problems[job.obj].append(image)
             continue
-        in_view, in_mask = _job_votes(means, candidates[job.obj], job, mask, image, cameras, config)
+        in_view, in_mask, outside = _job_votes(means, candidates[job.obj], job, mask, image, cameras, config)
         votes[job.obj] += in_view
         seen[job.obj] += in_mask
+        elsewhere[job.obj] += outside
         used[job.obj].append(job.view)
     sets, records = [], []
     for k, o in enumerate(objects):
@@ -305,27 +327,69 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
         sets.append(candidates[k][chosen])
         occluded = (seen[k] >= config.removal.mask_votes) & ~chosen
         records.append({"views": used[k], "candidates": len(candidates[k]),
-                        "occluded_rejected": int(occluded.sum()), "problems": problems[k]})
+                        "occluded_rejected": int(occluded.sum()), "problems": problems[k],
+                        "seen_elsewhere": candidates[k][(elsewhere[k] >= config.removal.mask_votes) & ~chosen]})
     return sets, records
 
 
+def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_points: np.ndarray, up: np.ndarray,
+                            base: float, band: float, reach: float) -> np.ndarray:
+    """The ``candidates`` (indices into ``means``) that are the support's own surface away from the
+    object: at most ``band`` above its ``base`` height (or below it), outside the convex hull, across
+    up, of the object's points (``object_points`` (P, 3)) within 2 × ``band`` of the base — the
+    object's contact — and farther than ``reach`` from every one of them."""
+    from scipy.spatial import Delaunay, QhullError, cKDTree
+
+    up = np.asarray(up, np.float64)
+    low = candidates[means[candidates] @ up - base <= band]
+    contact = object_points[object_points @ up - base <= 2 * band]
+    if len(low) == 0 or len(contact) == 0:
+        return low
+    u = np.cross(up, [1.0, 0, 0] if abs(up[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    across = np.stack([u, np.cross(up, u)], axis=1)  # (3, 2)
+    flat = means[low] @ across
+    d, _ = cKDTree(contact @ across).query(flat, distance_upper_bound=reach)
+    away = ~np.isfinite(d)
+    try:
+        away &= Delaunay(contact @ across).find_simplex(flat) < 0
+    except QhullError:  # a contact of fewer than three points, or on a line: its points alone
+        pass
+    return low[away]
+
+
 def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
-                 config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0)) -> tuple[list[np.ndarray], list[dict]]:
+                 config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0),
+                 bases: list[float] | None = None) -> tuple[list[np.ndarray], list[dict]]:
     """R_i for every object (sorted unique indices into ``data``) and per-object records with the
     counts of R_obs, R_asset, R_mask and their union. The mask votes of all objects are one
     pass of batched renders (``mask_votes``); each object's mesh is prepared for ray casting once,
-    for R_asset, R_enclosed and R_reach."""
+    for R_asset, R_enclosed and R_reach. With ``bases`` (each object's support height along up),
+    R_obs ∪ R_asset ∪ R_mask spares the support's surface away from the object's contact
+    (``support_outside_contact``, ``RemovalConfig.support_band`` and ``contact_reach``)."""
     means = data.means.astype(np.float64)
     index = BoxIndex(means)  # every object's boxes read only their x-slab of the capture
     boxes = [_in_box(means, o.bounds(config.removal.bounds_margin), index) for o in objects]
     masks, mask_records = mask_votes(data, objects, cameras, config, crops, boxes)
     sets, records = [], []
-    for o, box, r_mask, mask_record in zip(objects, boxes, masks, mask_records):
+    for k, (o, box, r_mask, mask_record) in enumerate(zip(objects, boxes, masks, mask_records)):
         r_obs = near_points(means, o.q, config.removal.obs_radius, index)
         caster = Raycaster(*o.mesh) if o.mesh is not None and len(o.mesh[1]) else None
         r_asset = (near_surface(means, caster, config.removal.asset_radius, index) if caster
                    else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
+        seen_elsewhere = mask_record.pop("seen_elsewhere")
+        r_seen = np.zeros(0, np.int64)
+        if config.removal.spare_seen_elsewhere:
+            own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)
+            r_seen = np.setdiff1d(np.setdiff1d(np.intersect1d(seen_elsewhere, union), r_mask), own)
+            union = np.setdiff1d(union, r_seen, assume_unique=True)
+        spared = np.zeros(0, np.int64)
+        if bases is not None and config.removal.contact_reach > 0:
+            points = object_points(o.q, o.contact_mesh, config.fill.grid, config.seed)
+            spared = support_outside_contact(means, union, points, np.asarray(up, np.float64), bases[k],
+                                             config.removal.support_band, config.removal.contact_reach)
+            union = np.setdiff1d(union, spared, assume_unique=True)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if caster is not None:
             rest = np.setdiff1d(box, union, assume_unique=True)
@@ -338,6 +402,6 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
             union = np.union1d(union, np.union1d(r_enclosed, r_reach))
         sets.append(union)
         records.append({"obs": len(r_obs), "asset": len(r_asset), "mask": len(r_mask), "enclosed": len(r_enclosed),
-                        "reach": len(r_reach),
+                        "reach": len(r_reach), "spared_support": len(spared), "spared_seen": len(r_seen),
                         "union": len(union), "asset_surface": o.mesh is not None, "mask_pass": mask_record})
     return sets, records

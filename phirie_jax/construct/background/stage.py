@@ -9,7 +9,8 @@ assets' ``objects/<id>/mesh.obj``), and for the objects being made movable:
 2. per object a robust support plane and the exposed cells of it (``plane``); where the kept
    Gaussians around the object give none, the level plane of the support the object stage found
    under it on the scene surface (``plane_source``) — no plane is an *unsupported region*,
-   recorded, and that object's hole stays;
+   recorded, and that object's hole stays; cells that two views saw kept surface behind (past a
+   draped support's edge) are not laid (``seethrough``);
 3. inpainting targets: one primary view per object, all edits of a frame in one target
    (``targets``; exemplar patches by default, OpenCV Telea or Navier–Stokes, or an external editor's folder);
 4. new disks on a ``grid`` lattice over the exposed cells plus a margin, coloured from the targets
@@ -42,6 +43,7 @@ from phirie_jax.construct.background import plane as fill_mod
 from phirie_jax.construct.background import targets
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.refine import DiskSet, refine
+from phirie_jax.construct.background.seethrough import see_through_votes
 from phirie_jax.construct.background.removal import ObjectInput, load_object, removal_sets
 from phirie_jax.construct.background.views import CropRenderer, make_crop
 from phirie_jax.construct.background.views import Footprints as CropFootprints
@@ -132,10 +134,11 @@ def construct_background(objects: tuple[ObjectRecord, ...], instances: tuple[Ins
     with timings.timed("background"), CompileCount() as compiles:
         with timings.timed("background.load"):
             run = _load_inputs(scene_dir, out_dir, instances, up, objects, config, scene)
+        support_of = {k: Support.from_record(r) for k, r in supports.items()}
         with timings.timed("background.removal"):
-            sets, removed = _removal(run, config)
+            sets, removed = _removal(run, config, support_of)
         with timings.timed("background.plane"):
-            fills = _plane_fills(run, sets, removed, supports, config)
+            fills = _plane_fills(run, sets, removed, support_of, config)
         fill_data, frames_record, refine_record = None, [], None
         if fills:
             with timings.timed("background.targets"):
@@ -179,9 +182,10 @@ def _load_inputs(scene_dir: str | Path | None, out_dir: Path, instance_records: 
     return _Run(out_dir, data, cameras, up / np.linalg.norm(up), CropRenderer(), inputs, records)
 
 
-def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.ndarray]:
+def _removal(run: _Run, config: BackgroundConfig, supports: dict[int, Support]) -> tuple[list[np.ndarray], np.ndarray]:
     """R_i of every object being removed (indices into G0) and (N,) bool: in any R_i."""
-    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops, run.up)
+    bases = [_base(run, o, supports.get(o.id)) for o in run.inputs]
+    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops, run.up, bases)
                              if run.inputs else ([], []))
     removed = np.zeros(run.data.num, bool)
     for o, r_i, rec in zip(run.inputs, sets, removal_records):
@@ -190,13 +194,12 @@ def _removal(run: _Run, config: BackgroundConfig) -> tuple[list[np.ndarray], np.
     return sets, removed
 
 
-def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support_records: dict[int, dict],
+def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, supports: dict[int, Support],
                  config: BackgroundConfig) -> list[_ObjectFill]:
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
     index = fill_mod.BoxIndex(kept.means)  # each object's boxes read only their x-slab of the kept
-    supports = {k: Support.from_record(r) for k, r in support_records.items()}
     fills = []
     for o, r_i in zip(run.inputs, sets):
         rec = run.records[o.id]
@@ -209,7 +212,35 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support
             continue
         if fill is not None:
             fills.append(fill)
+    if fills and config.fill.see_through_votes > 0:
+        fills = _drop_seen_through(run, fills, removed, config)
     return fills
+
+
+def _drop_seen_through(run: _Run, fills: list[_ObjectFill], removed: np.ndarray, config: BackgroundConfig
+                       ) -> list[_ObjectFill]:
+    """Each object's fill without the cells the cameras saw kept surface behind (``seethrough``);
+    an object left with no cell is recorded and has no fill."""
+    fill_config = config.fill
+    votes = see_through_votes(run.data, removed, run.cameras, [f.region.centres for f in fills], run.crops,
+                              max_views=fill_config.see_through_views, crop_size=fill_config.see_through_crop,
+                              depth_tolerance=fill_config.see_through_depth)
+    out = []
+    for f, v in zip(fills, votes):
+        keep = v.through < fill_config.see_through_votes
+        rec = run.records[f.id]
+        rec["fill"]["see_through"] = v.record(int((~keep).sum()))
+        rec["fill"]["disks"] = int(keep.sum())
+        if not keep.any():
+            _fail(rec, "nothing_exposed", "every fill cell was seen through to kept surface behind it")
+            continue
+        out.append(_ObjectFill(f.id, f.region.subset(keep), f.disks.subset(np.flatnonzero(keep))))
+    return out
+
+
+def _base(run: _Run, o: ObjectInput, support: Support | None) -> float:
+    """The height along up of the support under the object: recorded, else low in its Q_i."""
+    return support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
 
 
 def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: Support | None,
@@ -219,7 +250,7 @@ def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, suppor
     index: ``plane.BoxIndex(kept.means)``."""
     rec = run.records[o.id]
     obj_pts = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
-    base = support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
+    base = _base(run, o, support)
     ring = fill_mod.ring_points(kept.means, kept.opacity, obj_pts, run.up, base, config, index)
     centre = o.q.mean(0)
     anchor = centre + (base - centre @ run.up) * run.up
@@ -236,8 +267,9 @@ def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, suppor
         return None
     rec.setdefault("plane_source", "ring")
     rec["plane"] = plane.as_dict()
+    contact = obj_pts if o.shape_verified else o.q
     region = fill_mod.fill_region(plane, kept.means, kept.opacity, obj_pts,
-                                  run.data.means[r_i].astype(np.float64), config, index)
+                                  run.data.means[r_i].astype(np.float64), config, index, contact)
     rec["fill"] = {"exposed_cells": region.exposed, "disks": region.num,
                    "kept_spacing_m": round(region.covered_spacing, 5)}
     if region.num == 0:

@@ -90,3 +90,29 @@ def test_box_index_finds_what_testing_every_point_finds():
         np.testing.assert_array_equal(_in_box(points, box, index), _in_box(points, box))
         np.testing.assert_array_equal(within_box(points, lo, hi, index), within_box(points, lo, hi))
     assert len(index.within(np.full(3, 2.0), np.full(3, 3.0))) == 0
+
+
+def test_an_unverified_base_past_the_edge_lays_no_fill_in_the_air():
+    """A table ending at x = 0.145 and an object at its edge whose shape (an extrusion down to the
+    support, failed its registration) has a base reaching 8 cm past the edge: with that base as
+    evidence of the plane the fill covers it in the air; with the observed points alone it stays
+    on the table."""
+    rng = np.random.default_rng(5)
+    config = BackgroundConfig()
+    xy = rng.uniform([-0.4, -0.4], [0.145, 0.4], (40_000, 2))
+    xy = xy[np.hypot(xy[:, 0] - 0.1, xy[:, 1]) > 0.04]                 # unseen under the object
+    kept = np.column_stack([xy, rng.normal(0, 0.001, len(xy))])
+    opacity = np.full(len(kept), 0.9)
+    angle = rng.uniform(0, 2 * np.pi, 2000)
+    observed = np.column_stack([0.1 + 0.04 * np.cos(angle), 0.04 * np.sin(angle), rng.uniform(0.002, 0.1, 2000)])
+    base_grid = np.stack(np.meshgrid(np.arange(0.06, 0.23, 0.004), np.arange(-0.04, 0.04, 0.004)), -1).reshape(-1, 2)
+    guessed_base = np.column_stack([base_grid, np.zeros(len(base_grid))])
+    obj = np.concatenate([observed, guessed_base])
+    plane = fill_mod.Plane(np.zeros(3), np.array([0.0, 0, 1]), len(kept), len(kept), 0.001)
+    removed = observed[:300]
+    trusting = fill_mod.fill_region(plane, kept, opacity, obj, removed, config)
+    observed_only = fill_mod.fill_region(plane, kept, opacity, obj, removed, config, contact_points=observed)
+    past_edge = 0.145 + config.fill.margin + config.fill.grid
+    assert (trusting.centres[:, 0] > past_edge).sum() > 50
+    assert (observed_only.centres[:, 0] > past_edge).sum() == 0
+    assert observed_only.num > 100   # the unseen table under the object is still filled

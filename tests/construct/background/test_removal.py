@@ -75,3 +75,62 @@ def test_the_inside_of_an_open_container_is_walled_in():
     np.testing.assert_array_equal(walled, [0, 1])
     long_up = np.array([0.0, 0.0, 2.0])                  # up of any length
     np.testing.assert_array_equal(enclosed_by(means, np.arange(len(means)), caster, long_up, 8, 0.01), [0, 1])
+
+
+def test_the_support_is_spared_away_from_the_contact_only():
+    """support_outside_contact: a Gaussian at most the band above the support (or below it) and
+    farther than the reach, across up, from the object's contact is the support's own; one near the
+    contact, or higher up, is not. The object's points well above the support are no contact."""
+    from phirie_jax.construct.background.removal import support_outside_contact
+
+    angle = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    rim = np.column_stack([0.03 * np.cos(angle), 0.03 * np.sin(angle), np.full(64, 0.004)])   # the contact
+    brim = np.column_stack([0.2 * np.cos(angle), 0.2 * np.sin(angle), np.full(64, 0.08)])    # an overhang
+    obj = np.concatenate([rim, brim])
+    means = np.array([
+        [0.035, 0.0, 0.0],     # 5 mm from the contact, on the support: taken
+        [0.0, 0.0, 0.002],     # inside the contact ring: taken
+        [0.06, 0.0, 0.0],      # 3 cm out, on the support: spared
+        [0.2, 0.0, 0.0],       # under the overhang, on the support: spared
+        [0.06, 0.0, -0.03],    # 3 cm out, below the support (a sagging duvet): spared
+        [0.06, 0.0, 0.02],     # 3 cm out, 2 cm up: not the support
+    ])
+    spared = support_outside_contact(means, np.arange(6), obj, np.array([0.0, 0, 1]), 0.0, band=0.01, reach=0.01)
+    np.testing.assert_array_equal(spared, [2, 3, 4])
+    tilted = np.array([0.0, np.sin(0.2), np.cos(0.2)])   # the same scene turned: the same answer
+    from phirie_jax.geometry import rotation_to_z
+
+    turn = rotation_to_z(tilted).T
+    np.testing.assert_array_equal(
+        support_outside_contact(means @ turn.T, np.arange(6), obj @ turn.T, tilted, 0.0, band=0.01, reach=0.01),
+        [2, 3, 4])
+
+
+def test_a_view_votes_what_it_saw_outside_the_mask():
+    """_job_votes: a centre visible on the instance's mask votes for R_mask; one visible off the
+    mask votes *elsewhere* (it is something else, spared from R_obs and R_asset); one behind what
+    the view rendered at its pixel votes for neither."""
+    from pathlib import Path
+
+    from phirie_jax.construct.background.config import BackgroundConfig
+    from phirie_jax.construct.background.removal import MaskJob, _job_votes
+    from phirie_jax.construct.background.views import CropImage, make_crop
+    from phirie_jax.io.camera import intrinsics_matrix
+    from phirie_jax.types import Camera
+
+    camera = Camera("0.png", intrinsics_matrix(50.0, 50.0, 32.0, 32.0), np.eye(4), 64, 64)
+    crop = make_crop(camera, 0, np.array([0, 0, 63, 63]), (64,), 0)
+    mask = np.zeros((64, 64), np.int64)
+    mask[:, :32] = 7                                        # the instance fills the left half
+    depth = np.full((64, 64), 1.0, np.float32)
+    image = CropImage(np.zeros((64, 64, 3), np.float32), np.ones((64, 64), np.float32), depth,
+                      np.zeros((64, 64, 1), np.float32))
+    means = np.array([[-0.2, 0.0, 1.0],    # on the mask, at the rendered depth
+                      [0.2, 0.0, 1.0],     # off the mask, at the rendered depth
+                      [0.2, 0.1, 1.5],     # off the mask, 0.5 behind what the view saw
+                      [-0.2, 0.1, 1.5]])   # on the mask, behind
+    job = MaskJob(0, 0, 7, Path("mask.png"), crop)
+    in_view, in_mask, elsewhere = _job_votes(means, np.arange(4), job, mask, image, (camera,), BackgroundConfig())
+    np.testing.assert_array_equal(in_view, [True, False, False, False])
+    np.testing.assert_array_equal(in_mask, [True, False, False, True])
+    np.testing.assert_array_equal(elsewhere, [False, True, False, False])

@@ -177,6 +177,17 @@ def test_fill_recovers_the_plane_colour_under_the_objects(run):
     assert max(errors_fill) < FILL_TOL, errors_fill
 
 
+def test_the_cameras_see_through_no_cell_of_a_whole_table(run):
+    """The toy's plane runs past every object's fill: every view that holds a cell sees it on the
+    plane or hidden, none past it, so no cell is dropped."""
+    _, manifest = run
+    for o in manifest["background"]["objects"]:
+        if o["id"] in (1, 2):
+            record = o["fill"]["see_through"]
+            assert record["views"] > 0 and record["dropped"] == 0, record
+            assert o["fill"]["disks"] == record["cells"]
+
+
 def test_a_missing_objects_section_is_an_error_for_people(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps({"schema": "phirie/1", "timings": {}, "instances": []}))
     with pytest.raises(SceneInputError, match="objects"):
