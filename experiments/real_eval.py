@@ -306,7 +306,7 @@ def evaluate(args, rest: list[str]) -> dict:
     if out.exists():
         shutil.rmtree(out)
     result: dict = {"capture": str(capture), "held_out": [c.name for c in held_out],
-                    "training_views": len(training), "masks": str(masks),
+                    "scored_width": args.width or "full size", "training_views": len(training), "masks": str(masks),
                     "boxes": [{"id": b.id, "lower": b.lower, "upper": b.upper, "rotation": b.rotation} for b in boxes],
                     "prompts": [p.as_json() for p in prompts],
                     "frame_options": dataclasses.asdict(frame_options), "out": str(out)}

@@ -89,16 +89,19 @@ def _tangent_quats(normals: np.ndarray) -> np.ndarray:
 
 
 def captured_gaussians(scene_gaussians: GaussianSplatData, q_world: np.ndarray, placed_mesh,
-                       height_above_support: np.ndarray, radius: float, clearance: float) -> np.ndarray:
-    """Indices of the scene's Gaussians that belong to this object (see the module docstring);
-    ``placed_mesh`` is an ``observe.raycast.Raycaster`` of the mesh in the scene."""
+                       height_above_support: np.ndarray, radius: float, clearance: float,
+                       mesh_radius: float | None = None) -> np.ndarray:
+    """Indices of the scene's Gaussians that belong to this object (see the module docstring):
+    within ``radius`` of Q_i, higher than ``clearance`` above the support, and within
+    ``mesh_radius`` (default ``radius``) of the placed mesh or inside it; ``placed_mesh`` is an
+    ``observe.raycast.Raycaster`` of the mesh in the scene."""
     from scipy.spatial import cKDTree
 
     means = scene_gaussians.means.astype(np.float64)
     d_q, _ = cKDTree(q_world).query(means, distance_upper_bound=radius)
     near = np.isfinite(d_q) & (height_above_support > clearance)
     idx = np.flatnonzero(near)
-    return idx[placed_mesh.within(means[idx], radius)] if len(idx) else idx
+    return idx[placed_mesh.within(means[idx], radius if mesh_radius is None else mesh_radius)] if len(idx) else idx
 
 
 def fill_gaussians(vertices: np.ndarray, faces: np.ndarray, kept: GaussianSplatData, spacing: float,

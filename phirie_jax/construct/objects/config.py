@@ -140,6 +140,8 @@ class ObjectsConfig:
             ``RemovalConfig.obs_radius`` of Q_i (paper: 3 cm), so this is that radius: what the
             background gives up for the object, the object carries (at 1 cm a plush's outer fur
             and whatever touched it vanished from the converted scene: snowmiku −0.51 → −0.20 dB).
+        gaussian_mesh_radius: ... and within this of the placed mesh (or inside it): the object's
+            halo beyond its shape (a wall behind a mounted head) is the background's.
         base_clearance: captured Gaussians lower than this above the support are the support's.
         fill_spacing: spacing of new Gaussians on mesh regions the capture never saw.
         fill_min_distance: mesh points farther than this from every kept Gaussian are unseen.
@@ -165,6 +167,7 @@ class ObjectsConfig:
     extrude_cell: float = 0.004
     mesh_smooth: float = 0.8
     gaussian_radius: float = 0.03
+    gaussian_mesh_radius: float = 0.01
     base_clearance: float = 0.003
     fill_spacing: float = 0.004
     fill_min_distance: float = 0.008
@@ -183,5 +186,5 @@ class ObjectsConfig:
             "min_support": FRACTION, "min_hull_volume": NON_NEGATIVE, "settle_threshold": POSITIVE,
             "hull_resolution": Range(2), "hull_margin": NON_NEGATIVE, "hull_dilate_px": NON_NEGATIVE,
             "hull_max_misses": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,
-            "gaussian_radius": NON_NEGATIVE, "base_clearance": NON_NEGATIVE, "fill_spacing": POSITIVE,
+            "gaussian_radius": NON_NEGATIVE, "gaussian_mesh_radius": NON_NEGATIVE, "base_clearance": NON_NEGATIVE, "fill_spacing": POSITIVE,
             "fill_min_distance": NON_NEGATIVE, "colour_neighbours": AT_LEAST_ONE})

@@ -205,7 +205,8 @@ def _visual_gaussians(candidate: Candidate, canon: np.ndarray, frame: assets.Ass
     g = scene.gaussians
     height = inst.frame.to_gravity(g.means.astype(np.float64))[:, 2] - inst.support.height
     placed = Raycaster(canon @ frame.pose[:3, :3].T + frame.pose[:3, 3], candidate.faces)
-    idx = assets.captured_gaussians(g, q_world, placed, height, config.gaussian_radius, config.base_clearance)
+    idx = assets.captured_gaussians(g, q_world, placed, height, config.gaussian_radius, config.base_clearance,
+                                    config.gaussian_mesh_radius)
     kept = assets.transform_splats(g.subset(idx), np.linalg.inv(frame.pose))
     seen = _seen(inst, placed, surface, frame.pose, config.fill_min_distance)
     fill, fill_info = assets.fill_gaussians(canon, candidate.faces, kept, config.fill_spacing,

@@ -89,3 +89,27 @@ def test_stale_object_folders_go_and_folders_with_foreign_files_stay(tmp_path):
     assert (tmp_path / "objects/1/mesh.obj").exists() and not (tmp_path / "objects/2").exists()
     assert (tmp_path / "objects/3/notes.txt").exists() and (tmp_path / "objects/extra/mesh.obj").exists()
     assert assets.remove_stale_object_folders(tmp_path / "nothing_here", set()) == {"removed": [], "kept": []}
+
+
+def test_the_halo_beyond_the_shape_is_not_the_objects():
+    """captured_gaussians: a Gaussian 2 cm from Q_i belongs to the object when it lies inside or
+    near the placed shape (fur around a plush) and not when it lies 2 cm beyond the shape (the wall
+    behind a mounted head), however near Q_i."""
+    import trimesh
+
+    from phirie_jax.observe.raycast import Raycaster
+
+    cube = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    cube.apply_translation([0, 0, 0.05])
+    q = np.array([[0.049, 0.0, 0.05], [0.0, 0.0, 0.099]])        # observed on the +x and top faces
+    means = np.array([[0.03, 0.0, 0.05],     # 1.9 cm inside the +x face, 1.9 cm from Q: the object's
+                      [0.055, 0.0, 0.05],    # 6 mm out of the +x face: the object's (its fuzz)
+                      [0.069, 0.0, 0.05],    # 2 cm from Q and 1.9 cm out of the face: the wall's
+                      [0.0, 0.0, 0.118]])    # 1.9 cm above the top face: the wall's
+    scene = GaussianSplatData(means=means.astype(np.float32), quats=np.tile([1.0, 0, 0, 0], (4, 1)).astype(np.float32),
+                              log_scales=np.full((4, 3), -5.0, np.float32), opacity_logits=np.zeros(4, np.float32),
+                              sh=np.zeros((4, 1, 3), np.float32))
+    placed = Raycaster(cube.vertices, cube.faces)
+    idx = assets.captured_gaussians(scene, q, placed, means[:, 2], 0.03, 0.003, mesh_radius=0.01)
+    np.testing.assert_array_equal(idx, [0, 1])
+    np.testing.assert_array_equal(assets.captured_gaussians(scene, q, placed, means[:, 2], 0.03, 0.003), [0, 1, 2, 3])
