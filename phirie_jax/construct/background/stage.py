@@ -139,6 +139,9 @@ def construct_background(objects: tuple[ObjectRecord, ...], instances: tuple[Ins
             sets, removed = _removal(run, config, support_of)
         with timings.timed("background.plane"):
             fills = _plane_fills(run, sets, removed, support_of, config)
+        if fills and config.fill.see_through_votes > 0:
+            with timings.timed("background.see_through"):
+                fills = _drop_seen_through(run, fills, removed, config)
         fill_data, frames_record, refine_record = None, [], None
         if fills:
             with timings.timed("background.targets"):
@@ -212,8 +215,6 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support
             continue
         if fill is not None:
             fills.append(fill)
-    if fills and config.fill.see_through_votes > 0:
-        fills = _drop_seen_through(run, fills, removed, config)
     return fills
 
 
