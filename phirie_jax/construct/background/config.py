@@ -190,7 +190,7 @@ class FillConfig:
     max_disks: int = 40_000
     see_through_votes: int = 2
     see_through_depth: float = 0.02
-    see_through_views: int = 32
+    see_through_views: int = 16
     see_through_crop: int = 128
 
     def __post_init__(self):

@@ -379,16 +379,16 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
                    else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         seen_elsewhere = mask_record.pop("seen_elsewhere")
+        own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)  # what the object carries is never spared
         r_seen = np.zeros(0, np.int64)
         if config.removal.spare_seen_elsewhere:
-            own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)
             r_seen = np.setdiff1d(np.setdiff1d(np.intersect1d(seen_elsewhere, union), r_mask), own)
             union = np.setdiff1d(union, r_seen, assume_unique=True)
         spared = np.zeros(0, np.int64)
         if bases is not None and config.removal.contact_reach > 0:
             points = object_points(o.q, o.contact_mesh, config.fill.grid, config.seed)
-            spared = support_outside_contact(means, union, points, np.asarray(up, np.float64), bases[k],
-                                             config.removal.support_band, config.removal.contact_reach)
+            spared = np.setdiff1d(support_outside_contact(means, union, points, np.asarray(up, np.float64), bases[k],
+                                                          config.removal.support_band, config.removal.contact_reach), own)
             union = np.setdiff1d(union, spared, assume_unique=True)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if caster is not None:

@@ -167,7 +167,7 @@ class ObjectsConfig:
     extrude_cell: float = 0.004
     mesh_smooth: float = 0.8
     gaussian_radius: float = 0.03
-    gaussian_mesh_radius: float = 0.01
+    gaussian_mesh_radius: float = 0.02
     base_clearance: float = 0.003
     fill_spacing: float = 0.004
     fill_min_distance: float = 0.008
