@@ -170,7 +170,7 @@ class FillConfig:
         colour_neighbours: disks no target sees take the mean colour of this many nearest kept plane
             Gaussians ("neighbouring observations").
         max_disks: per object; more is a failed completion (an implausibly large exposed region).
-        see_through_votes: ours — a fill cell is not laid where this many training views saw kept
+        see_through_votes: ours — a fill cell is not laid where this many training views saw
             surface behind it (``construct.background.seethrough``: past a draped support's edge);
             0 lays every cell.
         see_through_depth: ours — ... more than this behind the cell's centre, metres.

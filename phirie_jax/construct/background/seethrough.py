@@ -1,4 +1,4 @@
-"""Fill cells the cameras saw through: a disk where a camera saw kept surface behind it is in the air.
+"""Fill cells the cameras saw through: a disk where a camera saw surface behind it is in the air.
 
 The fill region (``plane.fill_region``) is the part of the plane known from the capture (cells the
 kept Gaussians cover, the object's base, the removed Gaussians of the slab, and what they
@@ -8,16 +8,15 @@ disks laid there hide the bed's side or the floor behind them in every view that
 
 The capture says where that happened. For each training view whose image holds the fill cells
 (``see_through_views`` of them at most, the ones that hold most cells, ties to the earlier view),
-the capture G0 is rendered in a crop around the cells (``see_through_crop`` pixels a side) with
-the removed Gaussians' indicator as a feature. A cell's centre votes *through* in a view when its
-pixel there is opaque (alpha ≥ ``OPAQUE_ALPHA``), shows kept Gaussians (the removed weight at most
-``REMOVED_SHARE`` of the alpha: the object did not hide it) and the depth of what it shows lies
-more than ``see_through_depth`` behind the cell: the camera saw past the cell's position to the
-kept surface. A cell with ``see_through_votes`` such views or more is not laid.
+the capture G0 is rendered in a crop around the cells (``see_through_crop`` pixels a side). A
+cell's centre votes *through* in a view when its pixel there is opaque (alpha ≥ ``OPAQUE_ALPHA``)
+and the depth of what it shows lies more than ``see_through_depth`` behind the cell: the camera saw
+past the cell's position. A cell with ``see_through_votes`` such views or more is not laid.
 
-Under the object the removed Gaussians hide the cells in every view that sees them; where kept
-surface passes in front of a cell (a fold, a neighbour) the depth is in front of it. Neither
-votes, so a fill the capture leaves unseen is kept.
+Under the object, the object hides the cells in every view that sees them (what the pixel shows
+is in front of the cell); where the support itself or something on it is seen at the cell, the
+depth is the cell's or in front of it. Neither votes, so a fill the capture leaves unseen is kept.
+Every Gaussian of G0 counts, removed or kept: what a camera saw behind the cell was there.
 """
 
 from __future__ import annotations
@@ -39,7 +38,6 @@ from phirie_jax.construct.background.views import (
 from phirie_jax.types import Camera, GaussianSplatData
 
 OPAQUE_ALPHA = 0.8    # a pixel shows a surface
-REMOVED_SHARE = 0.2   # ... of kept Gaussians: the removed ones are at most this share of its alpha
 MIN_CELLS = 8         # a view whose image holds fewer of the cells does not vote
 
 
@@ -47,8 +45,8 @@ MIN_CELLS = 8         # a view whose image holds fewer of the cells does not vot
 class SeeThrough:
     """Votes of one object's fill cells."""
 
-    through: np.ndarray   # (M,) int: views that saw kept surface behind the cell
-    seen: np.ndarray      # (M,) int: views in which the cell's pixel showed kept surface (any depth)
+    through: np.ndarray   # (M,) int: views that saw surface behind the cell
+    seen: np.ndarray      # (M,) int: views in which the cell's pixel showed a surface (any depth)
     views: tuple[int, ...]  # the views that voted
 
     def record(self, dropped: int) -> dict:
@@ -68,12 +66,11 @@ def voting_views(cameras: tuple[Camera, ...], centres: np.ndarray, max_views: in
     return held[:max_views]
 
 
-def see_through_votes(data: GaussianSplatData, removed: np.ndarray, cameras: tuple[Camera, ...],
+def see_through_votes(data: GaussianSplatData, cameras: tuple[Camera, ...],
                       cells: list[np.ndarray], crops: CropRenderer, *, max_views: int, crop_size: int,
                       depth_tolerance: float, footprints: Footprints | None = None) -> list[SeeThrough]:
     """The votes of each object's fill cell centres (``cells``: (M_i, 3) each; module docstring),
-    every object's crops rendered in one pass. data: the capture G0 (N,); removed: (N,) bool, its
-    Gaussians removed for any object."""
+    every object's crops rendered in one pass. data: the capture G0 (N,)."""
     footprints = footprints or Footprints.of(data)
     plain = colourless(data)
     per_object, jobs = [], []
@@ -85,7 +82,7 @@ def see_through_votes(data: GaussianSplatData, removed: np.ndarray, cameras: tup
             box = np.concatenate([np.floor(uv.min(0)), np.floor(uv.max(0))])
             crop = make_crop(cameras[view], view, box, (crop_size,), margin=2)
             index, *_ = footprints.cull(crop.camera)
-            jobs.append(CropJob(plain, crop, index, features=removed[index, None].astype(np.float32)))
+            jobs.append(CropJob(plain, crop, index))
     images = iter(crops.render_many(jobs, pass_bucket([j.num for j in jobs]), num_features=1) if jobs else [])
     crop_of = iter(jobs)
     out = []
@@ -94,18 +91,18 @@ def see_through_votes(data: GaussianSplatData, removed: np.ndarray, cameras: tup
         seen = np.zeros(len(centres), np.int64)
         for _, inside in views:
             crop, image = next(crop_of).crop, next(images)
-            kept, behind, idx = _pixel_votes(crop, image, centres[inside], depth_tolerance)
+            opaque, behind, idx = _pixel_votes(crop, image, centres[inside], depth_tolerance)
             idx = np.flatnonzero(inside)[idx]
-            seen[idx] += kept
-            through[idx] += kept & behind
+            seen[idx] += opaque
+            through[idx] += opaque & behind
         out.append(SeeThrough(through, seen, tuple(v for v, _ in views)))
     return out
 
 
 def _pixel_votes(crop: Crop, image: CropImage, centres: np.ndarray, depth_tolerance: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For the centres (P, 3) that fall on a crop pixel (their indices (Q,)): the pixel shows kept
-    surface (Q,) bool, and it lies more than ``depth_tolerance`` behind the centre (Q,) bool."""
+    """For the centres (P, 3) that fall on a crop pixel (their indices (Q,)): the pixel shows a
+    surface (opaque, (Q,) bool), and it lies more than ``depth_tolerance`` behind the centre (Q,) bool."""
     uv, z = crop.camera.project(centres)
     col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
     ok = (z > 0) & (col >= 0) & (col < crop.size) & (row >= 0) & (row < crop.size)

@@ -9,7 +9,7 @@ assets' ``objects/<id>/mesh.obj``), and for the objects being made movable:
 2. per object a robust support plane and the exposed cells of it (``plane``); where the kept
    Gaussians around the object give none, the level plane of the support the object stage found
    under it on the scene surface (``plane_source``) — no plane is an *unsupported region*,
-   recorded, and that object's hole stays; cells that two views saw kept surface behind (past a
+   recorded, and that object's hole stays; cells that two views saw surface behind (past a
    draped support's edge) are not laid (``seethrough``);
 3. inpainting targets: one primary view per object, all edits of a frame in one target
    (``targets``; exemplar patches by default, OpenCV Telea or Navier–Stokes, or an external editor's folder);
@@ -141,7 +141,7 @@ def construct_background(objects: tuple[ObjectRecord, ...], instances: tuple[Ins
             fills = _plane_fills(run, sets, removed, support_of, config)
         if fills and config.fill.see_through_votes > 0:
             with timings.timed("background.see_through"):
-                fills = _drop_seen_through(run, fills, removed, config)
+                fills = _drop_seen_through(run, fills, config)
         fill_data, frames_record, refine_record = None, [], None
         if fills:
             with timings.timed("background.targets"):
@@ -218,12 +218,11 @@ def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, support
     return fills
 
 
-def _drop_seen_through(run: _Run, fills: list[_ObjectFill], removed: np.ndarray, config: BackgroundConfig
-                       ) -> list[_ObjectFill]:
-    """Each object's fill without the cells the cameras saw kept surface behind (``seethrough``);
+def _drop_seen_through(run: _Run, fills: list[_ObjectFill], config: BackgroundConfig) -> list[_ObjectFill]:
+    """Each object's fill without the cells the cameras saw surface behind (``seethrough``);
     an object left with no cell is recorded and has no fill."""
     fill_config = config.fill
-    votes = see_through_votes(run.data, removed, run.cameras, [f.region.centres for f in fills], run.crops,
+    votes = see_through_votes(run.data, run.cameras, [f.region.centres for f in fills], run.crops,
                               max_views=fill_config.see_through_views, crop_size=fill_config.see_through_crop,
                               depth_tolerance=fill_config.see_through_depth)
     out = []
@@ -233,7 +232,7 @@ def _drop_seen_through(run: _Run, fills: list[_ObjectFill], removed: np.ndarray,
         rec["fill"]["see_through"] = v.record(int((~keep).sum()))
         rec["fill"]["disks"] = int(keep.sum())
         if not keep.any():
-            _fail(rec, "nothing_exposed", "every fill cell was seen through to kept surface behind it")
+            _fail(rec, "nothing_exposed", "every fill cell was seen through to a surface behind it")
             continue
         out.append(_ObjectFill(f.id, f.region.subset(keep), f.disks.subset(np.flatnonzero(keep))))
     return out

@@ -50,7 +50,7 @@ def edge_scene():
 
 def test_cells_past_the_edge_are_seen_through_and_cells_on_the_support_are_not(edge_scene):
     data, cells = edge_scene
-    (votes,) = see_through_votes(data, np.zeros(data.num, bool), _cameras(), [cells], CropRenderer(),
+    (votes,) = see_through_votes(data, _cameras(), [cells], CropRenderer(),
                                  max_views=8, crop_size=64, depth_tolerance=0.02)
     on_support = cells[:, 0] < EDGE - SPACING
     in_air = cells[:, 0] > EDGE + SPACING
@@ -66,10 +66,10 @@ def test_a_cell_hidden_by_something_in_front_gets_no_vote(edge_scene):
     lid = _flat(_grid(-0.02, 0.3, -0.3, 0.3, SPACING), 0.1)
     covered = GaussianSplatData.join([data, lid], like=data)
     cameras = _cameras()[3:]   # from above
-    (votes,) = see_through_votes(covered, np.zeros(covered.num, bool), cameras, [cells], CropRenderer(),
+    (votes,) = see_through_votes(covered, cameras, [cells], CropRenderer(),
                                  max_views=8, crop_size=64, depth_tolerance=0.02)
     assert votes.through.sum() == 0
-    (open_votes,) = see_through_votes(data, np.zeros(data.num, bool), cameras, [cells], CropRenderer(),
+    (open_votes,) = see_through_votes(data, cameras, [cells], CropRenderer(),
                                       max_views=8, crop_size=64, depth_tolerance=0.02)
     assert open_votes.through[cells[:, 0] > EDGE + SPACING].min() == 1
 
@@ -78,6 +78,6 @@ def test_views_holding_too_few_cells_do_not_vote(edge_scene):
     data, cells = edge_scene
     far_away = Camera("away.png", intrinsics_matrix(80.0, 80.0, 48.0, 36.0),
                       look_at(np.array([0.0, 0.0, 0.9]), np.array([5.0, 0.0, 0.0])), 96, 72)
-    (votes,) = see_through_votes(data, np.zeros(data.num, bool), (far_away,), [cells], CropRenderer(),
+    (votes,) = see_through_votes(data, (far_away,), [cells], CropRenderer(),
                                  max_views=8, crop_size=64, depth_tolerance=0.02)
     assert votes.views == () and votes.through.sum() == 0 and votes.seen.sum() == 0
