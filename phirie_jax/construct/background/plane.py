@@ -155,8 +155,7 @@ def _raster(xy: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, i
 
 def object_points(q: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, grid: float, seed: int) -> np.ndarray:
     """Q_i and (when registered) points on the placed asset's surface dense enough to leave no gaps
-    in its shadow on a ``grid`` raster. Pass ``mesh`` None for the evidence of where the object
-    meets its support when the shape failed its registration check (``ObjectInput.contact_mesh``)."""
+    in its shadow on a ``grid`` raster."""
     if mesh is None:
         return q
     import trimesh

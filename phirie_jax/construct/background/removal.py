@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.construct.background.config import BackgroundConfig
-from phirie_jax.construct.background.plane import BoxIndex, object_points
+from phirie_jax.construct.background.plane import BoxIndex, tangent_basis
 from phirie_jax.construct.background.views import (
     Crop,
     CropImage,
@@ -75,13 +75,6 @@ class ObjectInput:
     shape_verified: bool = True            # the asset passed its registration check
     visual_means: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))  # (G, 3) its
     # visual Gaussians' centres placed in the scene: the captured ones are the capture's own
-
-    @property
-    def contact_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The placed asset as evidence of where the object meets its support: only a shape that
-        fits what was observed (an unverified one's base is a guess, e.g. an extrusion down to the
-        support past its edge)."""
-        return self.mesh if self.shape_verified else None
 
     def bounds(self, margin: float) -> np.ndarray:
         """(2, 3) Q_i ∪ asset box grown by ``margin``."""
@@ -286,9 +279,10 @@ def _job_images(data: GaussianSplatData, candidates: list[np.ndarray], jobs: lis
 
 def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
                config: BackgroundConfig, crops: CropRenderer, candidates: list[np.ndarray] | None = None
-               ) -> tuple[list[np.ndarray], list[dict]]:
-    """R_mask of every object (indices into ``data``) and a record per object. The (object, view)
-    renders of all objects are one pass of batched launches; each mask file is read once.
+               ) -> tuple[list[np.ndarray], list[dict], list[np.ndarray]]:
+    """R_mask of every object (indices into ``data``), a record per object, and per object the
+    candidates ``mask_votes`` views saw, unoccluded, outside its mask (not in R_mask). The (object,
+    view) renders of all objects are one pass of batched launches; each mask file is read once.
     candidates: per object, the indices of the Gaussians inside its expanded bounds (computed
     here when not given)."""
     means = data.means.astype(np.float64)
@@ -321,15 +315,15 @@ def mask_votes(data: GaussianSplatData, objects: list[ObjectInput], cameras: tup
         seen[job.obj] += in_mask
         elsewhere[job.obj] += outside
         used[job.obj].append(job.view)
-    sets, records = [], []
+    sets, records, seen_elsewhere = [], [], []
     for k, o in enumerate(objects):
         chosen = votes[k] >= config.removal.mask_votes
         sets.append(candidates[k][chosen])
+        seen_elsewhere.append(candidates[k][(elsewhere[k] >= config.removal.mask_votes) & ~chosen])
         occluded = (seen[k] >= config.removal.mask_votes) & ~chosen
         records.append({"views": used[k], "candidates": len(candidates[k]),
-                        "occluded_rejected": int(occluded.sum()), "problems": problems[k],
-                        "seen_elsewhere": candidates[k][(elsewhere[k] >= config.removal.mask_votes) & ~chosen]})
-    return sets, records
+                        "occluded_rejected": int(occluded.sum()), "problems": problems[k]})
+    return sets, records, seen_elsewhere
 
 
 def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_points: np.ndarray, up: np.ndarray,
@@ -345,9 +339,7 @@ def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_po
     contact = object_points[object_points @ up - base <= 2 * band]
     if len(low) == 0 or len(contact) == 0:
         return low
-    u = np.cross(up, [1.0, 0, 0] if abs(up[0]) < 0.9 else [0, 1.0, 0])
-    u /= np.linalg.norm(u)
-    across = np.stack([u, np.cross(up, u)], axis=1)  # (3, 2)
+    across = np.stack(tangent_basis(up), axis=1)  # (3, 2)
     flat = means[low] @ across
     d, _ = cKDTree(contact @ across).query(flat, distance_upper_bound=reach)
     away = ~np.isfinite(d)
@@ -360,17 +352,18 @@ def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_po
 
 def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
                  config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0),
-                 bases: list[float] | None = None) -> tuple[list[np.ndarray], list[dict]]:
+                 contacts: list[tuple[float, np.ndarray]] | None = None) -> tuple[list[np.ndarray], list[dict]]:
     """R_i for every object (sorted unique indices into ``data``) and per-object records with the
     counts of R_obs, R_asset, R_mask and their union. The mask votes of all objects are one
     pass of batched renders (``mask_votes``); each object's mesh is prepared for ray casting once,
-    for R_asset, R_enclosed and R_reach. With ``bases`` (each object's support height along up),
-    R_obs ∪ R_asset ∪ R_mask spares the support's surface away from the object's contact
-    (``support_outside_contact``, ``RemovalConfig.support_band`` and ``contact_reach``)."""
+    for R_asset, R_enclosed and R_reach. With ``contacts`` (per object its support's height along
+    up and the points (P, 3) that are evidence of where it meets it), R_obs ∪ R_asset ∪ R_mask
+    spares the support's surface away from the object's contact (``support_outside_contact``,
+    ``RemovalConfig.support_band`` and ``contact_reach``)."""
     means = data.means.astype(np.float64)
     index = BoxIndex(means)  # every object's boxes read only their x-slab of the capture
     boxes = [_in_box(means, o.bounds(config.removal.bounds_margin), index) for o in objects]
-    masks, mask_records = mask_votes(data, objects, cameras, config, crops, boxes)
+    masks, mask_records, seen_elsewhere = mask_votes(data, objects, cameras, config, crops, boxes)
     sets, records = [], []
     for k, (o, box, r_mask, mask_record) in enumerate(zip(objects, boxes, masks, mask_records)):
         r_obs = near_points(means, o.q, config.removal.obs_radius, index)
@@ -378,16 +371,15 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
         r_asset = (near_surface(means, caster, config.removal.asset_radius, index) if caster
                    else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
-        seen_elsewhere = mask_record.pop("seen_elsewhere")
         own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)  # what the object carries is never spared
         r_seen = np.zeros(0, np.int64)
         if config.removal.spare_seen_elsewhere:
-            r_seen = np.setdiff1d(np.setdiff1d(np.intersect1d(seen_elsewhere, union), r_mask), own)
+            r_seen = np.setdiff1d(np.intersect1d(seen_elsewhere[k], union), own)
             union = np.setdiff1d(union, r_seen, assume_unique=True)
         spared = np.zeros(0, np.int64)
-        if bases is not None and config.removal.contact_reach > 0:
-            points = object_points(o.q, o.contact_mesh, config.fill.grid, config.seed)
-            spared = np.setdiff1d(support_outside_contact(means, union, points, np.asarray(up, np.float64), bases[k],
+        if contacts is not None and config.removal.contact_reach > 0:
+            base, points = contacts[k]
+            spared = np.setdiff1d(support_outside_contact(means, union, points, np.asarray(up, np.float64), base,
                                                           config.removal.support_band, config.removal.contact_reach), own)
             union = np.setdiff1d(union, spared, assume_unique=True)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)

@@ -68,10 +68,10 @@ def voting_views(cameras: tuple[Camera, ...], centres: np.ndarray, max_views: in
 
 def see_through_votes(data: GaussianSplatData, cameras: tuple[Camera, ...],
                       cells: list[np.ndarray], crops: CropRenderer, *, max_views: int, crop_size: int,
-                      depth_tolerance: float, footprints: Footprints | None = None) -> list[SeeThrough]:
+                      depth_tolerance: float) -> list[SeeThrough]:
     """The votes of each object's fill cell centres (``cells``: (M_i, 3) each; module docstring),
     every object's crops rendered in one pass. data: the capture G0 (N,)."""
-    footprints = footprints or Footprints.of(data)
+    footprints = Footprints.of(data)
     plain = colourless(data)
     per_object, jobs = [], []
     for centres in cells:

@@ -92,6 +92,18 @@ class _Kept:
 
 
 @dataclasses.dataclass(frozen=True)
+class _Footing:
+    """Where one object stands: its support's height along up, its points (Q_i and, registered, its
+    asset's surface: its shadow on the support) and those that are evidence of where it meets the
+    support (Q_i alone when the shape failed its registration check: its base is a guess there,
+    an extrusion down past a draped support's edge)."""
+
+    base: float
+    points: np.ndarray   # (P, 3)
+    contact: np.ndarray  # (C, 3)
+
+
+@dataclasses.dataclass(frozen=True)
 class _ObjectFill:
     """One object's fill region and its initial disks."""
 
@@ -136,9 +148,10 @@ def construct_background(objects: tuple[ObjectRecord, ...], instances: tuple[Ins
             run = _load_inputs(scene_dir, out_dir, instances, up, objects, config, scene)
         support_of = {k: Support.from_record(r) for k, r in supports.items()}
         with timings.timed("background.removal"):
-            sets, removed = _removal(run, config, support_of)
+            footings = [_footing(run, o, support_of.get(o.id), config) for o in run.inputs]
+            sets, removed = _removal(run, config, footings)
         with timings.timed("background.plane"):
-            fills = _plane_fills(run, sets, removed, support_of, config)
+            fills = _plane_fills(run, sets, removed, support_of, footings, config)
         if fills and config.fill.see_through_votes > 0:
             with timings.timed("background.see_through"):
                 fills = _drop_seen_through(run, fills, config)
@@ -185,10 +198,10 @@ def _load_inputs(scene_dir: str | Path | None, out_dir: Path, instance_records: 
     return _Run(out_dir, data, cameras, up / np.linalg.norm(up), CropRenderer(), inputs, records)
 
 
-def _removal(run: _Run, config: BackgroundConfig, supports: dict[int, Support]) -> tuple[list[np.ndarray], np.ndarray]:
+def _removal(run: _Run, config: BackgroundConfig, footings: list[_Footing]) -> tuple[list[np.ndarray], np.ndarray]:
     """R_i of every object being removed (indices into G0) and (N,) bool: in any R_i."""
-    bases = [_base(run, o, supports.get(o.id)) for o in run.inputs]
-    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops, run.up, bases)
+    contacts = [(f.base, f.contact) for f in footings]
+    sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops, run.up, contacts)
                              if run.inputs else ([], []))
     removed = np.zeros(run.data.num, bool)
     for o, r_i, rec in zip(run.inputs, sets, removal_records):
@@ -198,16 +211,16 @@ def _removal(run: _Run, config: BackgroundConfig, supports: dict[int, Support]) 
 
 
 def _plane_fills(run: _Run, sets: list[np.ndarray], removed: np.ndarray, supports: dict[int, Support],
-                 config: BackgroundConfig) -> list[_ObjectFill]:
+                 footings: list[_Footing], config: BackgroundConfig) -> list[_ObjectFill]:
     """Per object its support plane, the exposed cells and their initial disks; an object without
     a plane, with nothing exposed or with too many disks is recorded and has no fill."""
     kept = _Kept.of(run.data.subset(~removed))
     index = fill_mod.BoxIndex(kept.means)  # each object's boxes read only their x-slab of the kept
     fills = []
-    for o, r_i in zip(run.inputs, sets):
+    for o, r_i, footing in zip(run.inputs, sets, footings):
         rec = run.records[o.id]
         try:
-            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), config, index)
+            fill = _object_fill(run, o, r_i, kept, supports.get(o.id), footing, config, index)
         except Exception as err:  # noqa: BLE001
             reason = f"{type(err).__name__}: {err}"
             _fail(rec, "failed", reason, err)
@@ -238,19 +251,21 @@ def _drop_seen_through(run: _Run, fills: list[_ObjectFill], config: BackgroundCo
     return out
 
 
-def _base(run: _Run, o: ObjectInput, support: Support | None) -> float:
-    """The height along up of the support under the object: recorded, else low in its Q_i."""
-    return support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
+def _footing(run: _Run, o: ObjectInput, support: Support | None, config: BackgroundConfig) -> _Footing:
+    """``_Footing`` of one object; its base is the support recorded under it, else low in its Q_i."""
+    base = support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
+    points = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
+    return _Footing(base, points, points if o.shape_verified else o.q)
 
 
 def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: Support | None,
-                 config: BackgroundConfig, index: fill_mod.BoxIndex | None = None) -> _ObjectFill | None:
+                 footing: _Footing, config: BackgroundConfig, index: fill_mod.BoxIndex | None = None
+                 ) -> _ObjectFill | None:
     """One object's plane, fill region and disks (``plane``); None, recorded, when it has none.
     r_i: (R,) its removed Gaussians; support: what observation found it stands on, if recorded;
     index: ``plane.BoxIndex(kept.means)``."""
     rec = run.records[o.id]
-    obj_pts = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
-    base = _base(run, o, support)
+    obj_pts, base = footing.points, footing.base
     ring = fill_mod.ring_points(kept.means, kept.opacity, obj_pts, run.up, base, config, index)
     centre = o.q.mean(0)
     anchor = centre + (base - centre @ run.up) * run.up
@@ -267,9 +282,8 @@ def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, suppor
         return None
     rec.setdefault("plane_source", "ring")
     rec["plane"] = plane.as_dict()
-    contact = obj_pts if o.shape_verified else o.q
     region = fill_mod.fill_region(plane, kept.means, kept.opacity, obj_pts,
-                                  run.data.means[r_i].astype(np.float64), config, index, contact)
+                                  run.data.means[r_i].astype(np.float64), config, index, footing.contact)
     rec["fill"] = {"exposed_cells": region.exposed, "disks": region.num,
                    "kept_spacing_m": round(region.covered_spacing, 5)}
     if region.num == 0:

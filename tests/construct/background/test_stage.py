@@ -118,9 +118,9 @@ def test_the_occlusion_test_is_what_keeps_the_distractors(run):
     distractors = set(np.flatnonzero(scene.labels == toy.DISTRACTOR))
     crops = CropRenderer()
     one_vote = dataclasses.replace(FAST, removal=dataclasses.replace(FAST.removal, mask_votes=1))
-    with_test, record = mask_votes(scene.data, [obj], cams, one_vote, crops)
+    with_test, record, _ = mask_votes(scene.data, [obj], cams, one_vote, crops)
     no_test = dataclasses.replace(one_vote, removal=dataclasses.replace(one_vote.removal, occlusion_tolerance=1e9))
-    without, _ = mask_votes(scene.data, [obj], cams, no_test, crops)
+    without, _, _ = mask_votes(scene.data, [obj], cams, no_test, crops)
     assert not distractors & set(with_test[0])
     assert distractors & set(without[0]), "no distractor is ever behind the sphere: the toy lost its teeth"
     assert record[0]["occluded_rejected"] >= 0
