@@ -232,16 +232,17 @@ def first_device_drops(models, qpos0, config, sharded: dict, states: tuple) -> d
             "max_abs_qpos_difference": max(_largest(settled, states[0][:per]), _largest(final, states[1][:per]))}
 
 
-def bench_warp_drops(models, qpos0, config, repeats: int, devices: list[str]) -> tuple[dict, tuple]:
+def bench_warp_drops(models, qpos0, config, repeats: int, devices: list[str], parallel_launch: bool = True
+                     ) -> tuple[dict, tuple]:
     from phirie_jax.construct.physics import warp_batch
 
     t0 = time.perf_counter()
     parts = warp_batch.prepare_split(models, qpos0, config, devices=devices)
     prep_s = time.perf_counter() - t0
-    first, run_s = timed(lambda: warp_batch.simulate_all(parts).final, repeats)
-    out = warp_batch.simulate_all(parts)
+    first, run_s = timed(lambda: warp_batch.simulate_all(parts, parallel_launch).final, repeats)
+    out = warp_batch.simulate_all(parts, parallel_launch)
     steps = len(models) * (config.settle_steps + config.free_steps)
-    return ({"devices": devices, "prep_s": round(prep_s, 2), "first_run_s": round(first, 4),
+    return ({"devices": devices, "parallel_launch": parallel_launch, "prep_s": round(prep_s, 2), "first_run_s": round(first, 4),
              "run_s": round(run_s, 4), "steps_per_s": round(steps / run_s, 1),
              "candidates_per_s": round(len(models) / run_s, 1)}, (out.settled, out.final))
 
@@ -302,6 +303,12 @@ def droptests_part(args, all_devices) -> tuple[dict, dict | None]:
     warp["one_device"], warp["all_devices"] = rows
     warp["comparison"] = compare_drops(models, qpos0, config, *kept, "warp")
     warp["speedup"] = round(rows[0]["run_s"] / rows[1]["run_s"], 3)
+    if len(gpus) > 1:  # the lever: every device's graphs launched from one thread, in turn
+        (serial,), (out,) = _one_against_all([(f"Warp drop tests on {gpus}, one launching thread", gpus)],
+                                             lambda names: bench_warp_drops(models, qpos0, config, args.repeats,
+                                                                            names, parallel_launch=False))
+        warp["all_devices_one_launching_thread"] = serial
+        warp["one_launching_thread_equal"] = bool(np.array_equal(out[1], kept[1][1]))
     return result, warp
 
 

@@ -219,13 +219,15 @@ class WarpDropBatch:
         return simulate_all([self])
 
 
-def simulate_all(batches: Sequence[WarpDropBatch]) -> WarpBatchResult:
+def simulate_all(batches: Sequence[WarpDropBatch], parallel_launch: bool = True) -> WarpBatchResult:
     """The protocol of every batch (each on its device), their worlds concatenated in order.
 
     Each phase is launched on every device before anything is read back: launches are
-    asynchronous, so the devices simulate at once. The settled state is copied on the device
-    (asynchronously too) before the free phase starts. With early exit the free phase goes
-    ``graph_steps`` at a time on every device still awake, then checks them all."""
+    asynchronous, so the devices simulate at once. A CUDA graph launch costs the host time in
+    proportion to the graph's nodes, so with several devices each launches its graphs from its own
+    thread (``parallel_launch``; False: one thread launches for all, in turn). The settled state is
+    copied on the device (asynchronously too) before the free phase starts. With early exit the
+    free phase goes ``graph_steps`` at a time on every device still awake, then checks them all."""
     import warp as wp
 
     steps = {id(b): b._steps() for b in batches}
@@ -234,11 +236,13 @@ def simulate_all(batches: Sequence[WarpDropBatch]) -> WarpBatchResult:
         with wp.ScopedDevice(b.device):
             b._reset()
             b._phase(False)
-            _repeat(wp, b.settle_graph, b.config.settle_steps, steps[id(b)][0], b.graph_steps)
+    _launch_each(wp, batches, lambda b: (b.settle_graph, b.config.settle_steps, steps[id(b)][0]), parallel_launch)
+    for b in batches:
+        with wp.ScopedDevice(b.device):
             kept[id(b)] = wp.clone(b.data.qpos)
             b._phase(True)
-            if not b.early_exit:
-                _repeat(wp, b.free_graph, b.config.free_steps, steps[id(b)][1], b.graph_steps)
+    _launch_each(wp, [b for b in batches if not b.early_exit],
+                 lambda b: (b.free_graph, b.config.free_steps, steps[id(b)][1]), parallel_launch)
     done = {id(b): (0 if b.early_exit else b.config.free_steps) for b in batches}
     awake = [b for b in batches if b.early_exit]
     while awake:
@@ -304,6 +308,32 @@ def run(models: list[mujoco.MjModel], qpos0: np.ndarray, config: DropTestConfig,
     """Drop-test ``models`` (one bucket, ``droptest.build_model``) from ``qpos0`` (N, 7) in MuJoCo Warp,
     on ``device``, or divided over ``devices`` (``warp_devices``: None, every GPU)."""
     return simulate_all(prepare_split(models, qpos0, config, early_exit, [device] if device else devices))
+
+
+def _launch_each(wp, batches: Sequence[WarpDropBatch], phase, parallel: bool) -> None:
+    """One phase of every batch: ``phase(batch)`` = (its graph or None, its steps, its step). The
+    whole graphs go from one thread per device when ``parallel`` (a graph launch names its own
+    device and stream, so the threads share nothing), then the remaining steps one by one here
+    (a step launches on the default device, which is the process's, not the thread's)."""
+    def launch(b: WarpDropBatch) -> None:
+        graph, count, _ = phase(b)
+        if graph is not None:
+            for _ in range(count // b.graph_steps):
+                wp.capture_launch(graph)
+
+    if parallel and len(batches) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(len(batches)) as pool:
+            list(pool.map(launch, batches))
+    else:
+        for b in batches:
+            launch(b)
+    for b in batches:
+        graph, count, step = phase(b)
+        with wp.ScopedDevice(b.device):
+            for _ in range(count // b.graph_steps * b.graph_steps if graph is not None else 0, count):
+                step()
 
 
 def _repeat(wp, graph, steps: int, step, graph_steps: int = GRAPH_STEPS) -> None:
