@@ -231,8 +231,8 @@ def fill_region(plane: Plane, kept_means: np.ndarray, kept_opacity: np.ndarray, 
 
     kept_means (K, 3), kept_opacity (K,), obj_points (P, 3) its shadow, removed_means (R, 3) the
     object's R_i; index: ``BoxIndex(kept_means)``, shared by the objects; contact_points (C, 3):
-    the points whose base is evidence of the plane (default ``obj_points``; an unverified shape's
-    base is a guess, and past a support's edge it would lay the fill in the air).
+    the points whose base is evidence of the plane (default ``obj_points``; the stage gives Q_i: an
+    asset's base is a guess, and past a support's edge it would lay the fill in the air).
     """
     from scipy.spatial import cKDTree
 

@@ -72,7 +72,6 @@ class ObjectInput:
     mask_paths: list[Path]                 # (V,) mask image of that view
     bboxes: np.ndarray                     # (V, 4) x0 y0 x1 y1 of the instance in that mask
     pixels: np.ndarray                     # (V,) mask area
-    shape_verified: bool = True            # the asset passed its registration check
     visual_means: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))  # (G, 3) its
     # visual Gaussians' centres placed in the scene: the captured ones are the capture's own
 
@@ -99,7 +98,7 @@ def load_object(entry: ObjectRecord, instance: InstanceRecord, out_dir: Path) ->
         views=np.asarray(data["views"], np.int64), labels=np.asarray(data["labels"], np.int64),
         mask_paths=[resolve(out_dir, str(p)) for p in data["mask_paths"]],
         bboxes=np.asarray(data["bboxes"], np.int64).reshape(-1, 4), pixels=np.asarray(data["pixels"], np.int64),
-        shape_verified=getattr(entry.check("registration"), "passed", None) is not False, visual_means=visual)
+        visual_means=visual)
 
 
 def _in_box(means: np.ndarray, box: np.ndarray, index: BoxIndex | None = None) -> np.ndarray:

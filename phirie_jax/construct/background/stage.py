@@ -95,8 +95,10 @@ class _Kept:
 class _Footing:
     """Where one object stands: its support's height along up, its points (Q_i and, registered, its
     asset's surface: its shadow on the support) and those that are evidence of where it meets the
-    support (Q_i alone when the shape failed its registration check: its base is a guess there,
-    an extrusion down past a draped support's edge)."""
+    support: Q_i alone. The asset's base is a completion nobody saw, verified or not: an extrusion
+    down past a draped support's edge, a visual hull's cut through a duvet the plush sinks into
+    (on snowmiku its base laid fill the held-out views saw around the plush: −0.53 dB against
+    −0.23 dB with Q_i alone, at 500 px)."""
 
     base: float
     points: np.ndarray   # (P, 3)
@@ -255,7 +257,7 @@ def _footing(run: _Run, o: ObjectInput, support: Support | None, config: Backgro
     """``_Footing`` of one object; its base is the support recorded under it, else low in its Q_i."""
     base = support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
     points = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
-    return _Footing(base, points, points if o.shape_verified else o.q)
+    return _Footing(base, points, o.q)
 
 
 def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: Support | None,

@@ -40,13 +40,22 @@ def hull_volume(vertices: np.ndarray) -> float:
         return 0.0
 
 
-def candidate_checks(scores: dict, canonical_hull_volume: float, config: ObjectsConfig) -> dict:
-    """The check table of one registered hypothesis (``Hypothesis.scores()``)."""
+def residual_threshold(observed_size: float, config: ObjectsConfig) -> float:
+    """The registration check's bound on E for an object whose observation is ``observed_size``
+    across (metres): ``max_residual``, or ``max_relative_residual`` of that size when larger."""
+    return max(config.max_residual, config.max_relative_residual * max(observed_size, 0.0))
+
+
+def candidate_checks(scores: dict, canonical_hull_volume: float, config: ObjectsConfig,
+                     observed_size: float = 0.0) -> dict:
+    """The check table of one registered hypothesis (``Hypothesis.scores()``) of an observation
+    ``observed_size`` across (``register.observed_size``; 0: the absolute bound alone)."""
     energy, support, scale, s0 = scores["energy"], scores["support"], scores["scale"], scores["scale_init"]
     discrepancy = abs(math.log(scale / s0)) if scale > 0 and s0 > 0 else math.inf
     volume = canonical_hull_volume * scale**3
+    bound = residual_threshold(observed_size, config)
     return {
-        "registration": check(energy, config.max_residual, bool(energy <= config.max_residual)),
+        "registration": check(energy, bound, bool(energy <= bound), observed_size=observed_size),
         "scale": check(discrepancy, config.max_scale_discrepancy,
                        bool(discrepancy <= config.max_scale_discrepancy)),
         "support": check(support, config.min_support, bool(support >= config.min_support)),

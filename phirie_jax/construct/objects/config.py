@@ -116,6 +116,15 @@ class ObjectsConfig:
         min_points: an instance with fewer observed points fails ("too few points").
         max_residual: registration check, E_i(S) in metres (ours, from the development seeds:
             ground-truth shapes score 4–7 mm, wrong up axes and wrong shapes ≥ 10 mm).
+        max_relative_residual: ... or this fraction of the observed object's size (the diagonal of
+            Q's 2–98 % box), when larger (ours). The development objects are 9–27 cm across, where
+            1 cm holds; a shape carved on a ``hull_resolution`` grid over a larger object's box is
+            already ~1/45 of its size off by its voxels alone, and a scale from a prior leaves
+            metres uncertain by its factor. Real captures (45–50 cm across, free-space carved):
+            E 3.0–3.6 % of the size, like gsplat-fitted synthetic objects (2–7 %); what gsplat's
+            densification leaves on a table 5.5–29 % (``discovery_eval_gsplat``). Not for what
+            automatic discovery found: a duvet's folds fit an extrusion within 3.2–4.1 % of their
+            size (snowmiku), so discovery keeps ``max_residual`` alone.
         max_scale_discrepancy: scale check, |ln(s / s_init)| between the registered scale and the
             robust-extent init of its axis (ours).
         min_support: observation support check: fraction of Q within τ of the asset (ours).
@@ -133,6 +142,10 @@ class ObjectsConfig:
             synthetic scenes' rendered masks measured 1–2 px wider than the projected mesh already
             (each extra pixel grew the hull's volume by a further 15–25 %).
         hull_max_misses: a voxel survives this many views that see background where it projects.
+        hull_free_space_margin: a view saw through a voxel when its ray meets the observed surface
+            more than this beyond the voxel's centre (``generators.free_space``).
+        hull_free_space_views: ... and a voxel that this many views saw through is carved (0: the
+            masks alone carve).
         extrude_cell: footprint/heightfield cell of the extruded generator.
         mesh_smooth: Gaussian smoothing (in voxels) of an occupancy grid before meshing.
         gaussian_radius: captured Gaussians within this of Q_i and of the placed mesh belong
@@ -158,6 +171,7 @@ class ObjectsConfig:
     strict: bool = False
     min_points: int = 50
     max_residual: float = 0.010
+    max_relative_residual: float = 0.04
     max_scale_discrepancy: float = 0.15
     min_support: float = 0.9
     min_hull_volume: float = 1e-7
@@ -167,6 +181,8 @@ class ObjectsConfig:
     hull_margin: float = 0.03
     hull_dilate_px: int = 0
     hull_max_misses: int = 0
+    hull_free_space_margin: float = 0.005
+    hull_free_space_views: int = 2
     extrude_cell: float = 0.004
     mesh_smooth: float = 0.8
     gaussian_radius: float = 0.03
@@ -185,9 +201,11 @@ class ObjectsConfig:
         if not self.generators:
             raise ValueError("objects: the candidate pool (generators) is empty")
         check_ranges(self, {
-            "selection": Choice.of(Selection), "min_points": AT_LEAST_ONE, "max_residual": POSITIVE, "max_scale_discrepancy": POSITIVE,
+            "selection": Choice.of(Selection), "min_points": AT_LEAST_ONE, "max_residual": POSITIVE,
+            "max_relative_residual": NON_NEGATIVE, "max_scale_discrepancy": POSITIVE,
             "min_support": FRACTION, "min_hull_volume": NON_NEGATIVE, "settle_threshold": POSITIVE,
             "hull_resolution": Range(2), "hull_margin": NON_NEGATIVE, "hull_dilate_px": NON_NEGATIVE,
-            "hull_max_misses": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,
+            "hull_max_misses": NON_NEGATIVE, "hull_free_space_margin": NON_NEGATIVE,
+            "hull_free_space_views": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,
             "gaussian_radius": NON_NEGATIVE, "gaussian_mesh_radius": NON_NEGATIVE, "base_clearance": NON_NEGATIVE, "fill_spacing": POSITIVE,
             "fill_min_distance": NON_NEGATIVE, "colour_neighbours": AT_LEAST_ONE})

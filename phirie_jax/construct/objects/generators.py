@@ -6,7 +6,8 @@ is the gravity frame moved so the centre of its base is the origin; the placemen
 (canonical → gravity frame) is known, so these candidates are scored, not searched.
 
 - ``visual_hull``: voxels inside Q's grown box, carved by every supporting view's mask
-  (``kernels.carve``), cut at the support plane, largest component, meshed.
+  (``kernels.carve``) and, given the observed surface, by what the views saw through (free space
+  in front of the surface they looked at), cut at the support plane, largest component, meshed.
 - ``primitive``: the upright box or cylinder with the smaller footprint enclosing Q.
 - ``extrude``: Q's top surface as a heightfield on its footprint, extruded down to the support.
 """
@@ -46,6 +47,7 @@ class InstanceInput:
     cameras: tuple                  # Camera per supporting view
     mask_paths: tuple[Path, ...]    # label image per supporting view
     labels: tuple[int, ...]         # the instance's value in each of those images
+    surface: object | None = None   # the observed surface (``observe.raycast.Raycaster``), world frame
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +139,8 @@ def visual_hull(inst: InstanceInput, config: ObjectsConfig) -> Shape:
     occupied[dims[0]:, :, :] = False
     occupied[:, dims[1]:, :] = False
     occupied[:, :, dims[2]:] = False
+    seen_through = free_space(inst, centres_g.reshape(res, res, res, 3), occupied, config)
+    occupied &= ~seen_through
     occupied = largest_component(occupied)
     if not occupied.any():
         raise GeneratorError("every voxel was carved away (masks and cameras disagree)")
@@ -144,7 +148,29 @@ def visual_hull(inst: InstanceInput, config: ObjectsConfig) -> Shape:
     if len(faces) == 0:
         raise GeneratorError("the carved volume is too thin to mesh")
     return _canonical(vertices, faces, {"voxel": voxel, "views": len(inst.cameras),
-                                        "voxels": int(occupied.sum())})
+                                        "voxels": int(occupied.sum()), "seen_through": int(seen_through.sum())})
+
+
+def free_space(inst: InstanceInput, centres: np.ndarray, occupied: np.ndarray, config: ObjectsConfig) -> np.ndarray:
+    """(R, R, R) bool: occupied voxels that at least ``hull_free_space_views`` of the instance's
+    views saw through: the view's ray through the voxel centre meets the observed surface more than
+    ``hull_free_space_margin`` beyond it. A silhouette cannot carve a concavity or the halo a fuzzy
+    object's masks hold around its surface (a plush's fur: its masks reach ~1 cm past the surface
+    its depth shows); the depth can. A ray that meets nothing votes nothing (a hole in the surface
+    is no evidence of free space). All False without an observed surface."""
+    out = np.zeros(occupied.shape, bool)
+    if inst.surface is None or config.hull_free_space_views <= 0 or not occupied.any():
+        return out
+    points = inst.frame.to_world(centres[occupied])
+    votes = np.zeros(len(points), np.int64)
+    for camera in inst.cameras:
+        offset = points - camera.center
+        distance = np.linalg.norm(offset, axis=1)
+        hits = inst.surface.cast(np.broadcast_to(camera.center, offset.shape).copy(),
+                                 offset / np.maximum(distance, 1e-12)[:, None])
+        votes += (hits.hit & (hits.depth > distance + config.hull_free_space_margin)).astype(np.int64)
+    out[occupied] = votes >= config.hull_free_space_views
+    return out
 
 
 # --- upright primitive ----------------------------------------------------------------

@@ -60,6 +60,15 @@ class Observation:
     support_z: float
     has_support: bool
     floor: float = -np.inf  # E leaves out model points placed below this (``scored_model``)
+    size: float = 0.0       # the diagonal of Q's 2–98 % box, metres (``observed_size``)
+
+
+def observed_size(points: np.ndarray) -> float:
+    """The diagonal of the (N, 3) points' 2–98 % box: the observed object's size, robust to strays."""
+    if len(points) == 0:
+        return 0.0
+    lo, hi = np.percentile(np.asarray(points, np.float64), [2, 98], axis=0)
+    return float(np.linalg.norm(hi - lo))
 
 
 def prepare_observation(q_gravity: np.ndarray, support_z: float, has_support: bool,
@@ -77,7 +86,7 @@ def prepare_observation(q_gravity: np.ndarray, support_z: float, has_support: bo
     floor = -np.inf
     if cut is not None and config.skip_cut_base:
         floor = float(support_z) + cut
-    return Observation(points, mask, n, float(support_z), bool(has_support), floor)
+    return Observation(points, mask, n, float(support_z), bool(has_support), floor, observed_size(q_gravity))
 
 
 def sample_model(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int) -> np.ndarray:

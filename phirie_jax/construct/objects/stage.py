@@ -89,7 +89,7 @@ def _raycaster(observed_surface: Path | None, scene: SceneInput):
 
 
 def _instance_input(record: InstanceRecord, points: np.ndarray, data: dict, frame: GravityFrame, support: Support,
-                    scene: SceneInput, out_dir: Path) -> InstanceInput:
+                    scene: SceneInput, out_dir: Path, surface=None) -> InstanceInput:
     cams, paths, labels = [], [], []
     for view, path, label in zip(data["views"], data["mask_paths"], data["labels"]):
         if not str(path) or not 0 <= int(view) < len(scene.cameras):
@@ -99,7 +99,7 @@ def _instance_input(record: InstanceRecord, points: np.ndarray, data: dict, fram
         paths.append(p if p.is_absolute() else out_dir / p)
         labels.append(int(label))
     return InstanceInput(int(record.id), frame.to_gravity(points), frame, support, tuple(cams), tuple(paths),
-                         tuple(labels))
+                         tuple(labels), surface)
 
 
 # --- one candidate -------------------------------------------------------------------------
@@ -109,15 +109,18 @@ def _entry(candidate: Candidate) -> dict:
     return {**candidate.record(), "status": "failed" if candidate.error else "ok", "reason": candidate.error}
 
 
-def _with_checks(entry: dict, h: Hypothesis, volume: float, config: ObjectsConfig) -> dict:
-    checks = candidate_checks(h.scores(), volume, config)
+def _with_checks(entry: dict, h: Hypothesis, volume: float, config: ObjectsConfig, size: float) -> dict:
+    checks = candidate_checks(h.scores(), volume, config, size)
     return {**entry, "scores": h.scores(), "checks": checks, "gravity_matrix": h.matrix}
 
 
 def register_candidate(candidate: Candidate, obs: Observation, config: ObjectsConfig,
-                       timings: Timings | None = None) -> dict:
+                       timings: Timings | None = None, size_bound: bool = True) -> dict:
     """Registration, checks and the bounded retry of one candidate → its record (``candidates[]``);
-    ``timings``: where ``objects.sample`` and ``objects.register`` add up (None: not kept)."""
+    ``timings``: where ``objects.sample`` and ``objects.register`` add up (None: not kept);
+    ``size_bound``: the registration bound may grow with the object's size (``checks.residual_threshold``;
+    False: ``max_residual`` alone, for what automatic discovery found: no user says it is an object,
+    and a duvet's fold fits a heightfield within a few per cent of its size too)."""
     timings = timings if timings is not None else Timings()
     entry = _entry(candidate)
     if not candidate.ok:
@@ -137,7 +140,8 @@ def register_candidate(candidate: Candidate, obs: Observation, config: ObjectsCo
     hyps = [h for h in hyps if h.finite]
     if not hyps:
         return {**entry, "status": "failed", "reason": "registration gave no finite placement", "kernel_calls": calls}
-    own = _with_checks(entry, hyps[0], volume, config)
+    size = obs.size if size_bound else 0.0
+    own = _with_checks(entry, hyps[0], volume, config, size)
     retry = {"used": False}
     chosen = own
     if candidate.placement is None and config.retry and failed(own["checks"]):
@@ -146,7 +150,7 @@ def register_candidate(candidate: Candidate, obs: Observation, config: ObjectsCo
                 more, _ = search(model, obs, rc, OTHER_AXES, snap=config.snap_to_support)
             calls += 1
             hyps += [h for h in more if h.finite]
-        options = [own] + [_with_checks(entry, h, volume, config) for h in hyps[1:]]
+        options = [own] + [_with_checks(entry, h, volume, config, size) for h in hyps[1:]]
         chosen = min(options, key=rank_key)
         retry = {"used": True, "own_up_failed": failed(own["checks"]), "chosen_axis": chosen["scores"]["axis"],
                  "axes": [{"axis": o["scores"]["axis"], "energy": o["scores"]["energy"],
@@ -278,7 +282,7 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
     with timings.timed("objects.candidates"):
         pool = candidate_pool(inst, scene.candidates.get(inst.id, ()), config)
-    entries = _registered(pool, inst, config, timings)
+    entries = _registered(pool, inst, config, timings, size_bound=record.source != "auto")
     if settle is not None:
         with timings.timed("objects.settle"):
             settle_candidates(entries, pool, inst.frame.up, record.category, settle)
@@ -303,11 +307,13 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
             "reason": None if not bad else f"kept with failed checks: {', '.join(bad)} (use --strict to reject)"}
 
 
-def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, timings: Timings) -> list[dict]:
-    """Every candidate of the pool registered and checked, its placement as a world pose."""
+def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, timings: Timings,
+                size_bound: bool = True) -> list[dict]:
+    """Every candidate of the pool registered and checked (``register_candidate``), its placement as
+    a world pose."""
     obs = prepare_observation(inst.points, inst.support.height, inst.support.source in ("surface", "prompt"),
                               config.registration, cut=inst.support.clearance)
-    entries = [register_candidate(c, obs, config, timings) for c in pool]
+    entries = [register_candidate(c, obs, config, timings, size_bound) for c in pool]
     for e in entries:
         e["pose"] = None if "gravity_matrix" not in e else inst.frame.matrix() @ e["gravity_matrix"]
     return entries
@@ -351,7 +357,7 @@ def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list
     for o, support in zip(loaded, supports):
         start = time.perf_counter()
         try:
-            inst = _instance_input(o.record, o.points, o.data, frame, support, scene, out_dir)
+            inst = _instance_input(o.record, o.points, o.data, frame, support, scene, out_dir, surface)
             entry = construct_object(o.record, o.points, inst, scene, config, out_dir, timings, settle, surface)
         except Exception as err:  # noqa: BLE001 — one object's failure is recorded, the scene goes on
             entry = {**_entry_for(o.record.id, f"{type(err).__name__}: {err}"),

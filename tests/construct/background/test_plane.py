@@ -92,9 +92,9 @@ def test_box_index_finds_what_testing_every_point_finds():
     assert len(index.within(np.full(3, 2.0), np.full(3, 3.0))) == 0
 
 
-def test_an_unverified_base_past_the_edge_lays_no_fill_in_the_air():
+def test_a_guessed_base_past_the_edge_lays_no_fill_in_the_air():
     """A table ending at x = 0.145 and an object at its edge whose shape (an extrusion down to the
-    support, failed its registration) has a base reaching 8 cm past the edge: with that base as
+    support) has a base reaching 8 cm past the edge: with that base as
     evidence of the plane the fill covers it in the air; with the observed points alone it stays
     on the table."""
     rng = np.random.default_rng(5)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
+import numpy as np
 import pytest
 
 from phirie_jax.construct.objects.checks import (
@@ -15,8 +17,10 @@ from phirie_jax.construct.objects.checks import (
     not_run,
     rank,
     rank_key,
+    residual_threshold,
 )
 from phirie_jax.construct.objects.config import ObjectsConfig
+from phirie_jax.construct.objects.register import observed_size
 
 
 def table(residual=0.005, scale=0.05, support=0.97, collision=True, settling=None, settling_passed=None):
@@ -79,6 +83,28 @@ def test_candidate_checks_from_scores():
     assert checks["settling"] == {"value": None, "threshold": config.settle_threshold, "passed": None,
                                   "status": "not_run", "reason": checks["settling"]["reason"]}
     assert failed(checks) == ["scale"]
+
+
+def test_the_registration_bound_grows_with_the_object_past_its_absolute_floor():
+    config = ObjectsConfig()
+    scores = {"energy": 0.015, "support": 0.99, "scale": 1.0, "scale_init": 1.0}
+    small = candidate_checks(scores, 1.0, config, observed_size=0.2)      # 4 % of 20 cm < 1 cm
+    large = candidate_checks(scores, 1.0, config, observed_size=0.5)      # 4 % of 50 cm = 2 cm
+    assert small["registration"]["threshold"] == config.max_residual and not small["registration"]["passed"]
+    assert large["registration"]["threshold"] == pytest.approx(config.max_relative_residual * 0.5)
+    assert large["registration"]["passed"] and large["registration"]["observed_size"] == 0.5
+    assert residual_threshold(0.0, config) == config.max_residual
+    strict = dataclasses.replace(config, max_relative_residual=0.0)
+    assert not candidate_checks(scores, 1.0, strict, observed_size=0.5)["registration"]["passed"]
+
+
+def test_the_observed_size_ignores_strays():
+    rng = np.random.default_rng(0)
+    box = rng.uniform(0.0, [0.3, 0.4, 0.0], (5000, 3))
+    strays = np.concatenate([box, [[5.0, 5.0, 5.0]] * 20])
+    assert observed_size(box) == pytest.approx(0.5, rel=0.05)
+    assert observed_size(strays) == pytest.approx(observed_size(box), rel=0.02)
+    assert observed_size(np.zeros((0, 3))) == 0.0
 
 
 def test_hull_volume_of_a_cube_and_of_a_flat_set():

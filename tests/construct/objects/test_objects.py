@@ -146,7 +146,8 @@ def test_the_decoy_loses_to_a_candidate_that_fits(constructed):
 def test_strict_rejects_objects_with_failed_checks_and_writes_no_asset(observed, tmp_path):
     root, out, _, _ = observed
     shutil.copytree(out, tmp_path, dirs_exist_ok=True)
-    impossible = ObjectsConfig(**{**FAST.__dict__, "max_residual": 1e-9, "generators": ("primitive",)})
+    impossible = ObjectsConfig(**{**FAST.__dict__, "max_residual": 1e-9, "max_relative_residual": 0.0,
+                                  "generators": ("primitive",)})
     kept = run_objects(root, tmp_path, impossible, settle=SETTLE)
     assert all(o["status"] == "unverified" and o["unresolved_checks"] == ["registration"] for o in kept["objects"])
     assert all(o["reason"] == "kept with failed checks: registration (use --strict to reject)"

@@ -124,6 +124,17 @@ def test_batched_retry_takes_the_right_axis_in_one_call():
     np.testing.assert_allclose(batched["gravity_matrix"][:3, :3], truth[:3, :3], atol=0.05 * scale)
 
 
+def test_the_registration_bound_scales_with_the_observation_unless_discovery_found_it():
+    cand, obs, _ = _l_candidate_in_a_y_up_frame()
+    config = ObjectsConfig(registration=SMALL, max_relative_residual=0.5)   # half of Q's size: loose
+    pointed = register_candidate(cand, obs, config)["checks"]["registration"]
+    found = register_candidate(cand, obs, config, size_bound=False)["checks"]["registration"]
+    assert pointed["observed_size"] == pytest.approx(reg.observed_size(obs.points[obs.mask]), rel=1e-5)
+    assert pointed["threshold"] == pytest.approx(0.5 * pointed["observed_size"])
+    assert pointed["threshold"] > config.max_residual
+    assert found["threshold"] == config.max_residual and found["observed_size"] == 0.0
+
+
 @pytest.mark.slow
 def test_lazy_retry_and_no_retry_agree_with_the_batched_call():
     cand, obs, truth = _l_candidate_in_a_y_up_frame()
