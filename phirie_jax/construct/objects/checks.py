@@ -98,6 +98,20 @@ def first_by_priority(entries: list[dict]) -> dict | None:
     return next((e for e in valid if not failed(e["checks"])), valid[0] if valid else None)
 
 
+def kept_reason(bad: list[str], base_gap: float | None, settle_threshold: float) -> str | None:
+    """Why a kept object is not ``accepted`` (None when it is): its failed checks (``bad``). One
+    whose lowest observed point is higher above the support under it (``base_gap``, metres) than the
+    settling threshold cannot pass the drop test, since it falls that far: said, for it hangs or
+    is mounted (a head on a wall)."""
+    if not bad:
+        return None
+    reason = f"kept with failed checks: {', '.join(bad)} (use --strict to reject)"
+    if "settling" in bad and base_gap is not None and base_gap > settle_threshold:
+        reason += (f"; its lowest observed point is {base_gap:.2f} m above the support found under it: it hangs or "
+                   "is mounted, and nothing holds it in the simulator")
+    return reason
+
+
 def discovered_rejection(source: str | None, bad: list[str]) -> str | None:
     """Why an instance found by automatic discovery (``source`` "auto") is not kept although its
     best candidate was chosen: it failed one of ``DISCOVERED_MUST_PASS`` (``bad``: the chosen

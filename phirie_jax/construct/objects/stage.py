@@ -43,6 +43,7 @@ from phirie_jax.construct.objects.candidates import Candidate, candidate_pool
 from phirie_jax.construct.objects.checks import (
     candidate_checks,
     discovered_rejection,
+    kept_reason,
     failed,
     first_by_priority,
     hull_volume,
@@ -277,7 +278,8 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     """The manifest ``objects`` entry of one instance (writes its asset files when accepted).
     With ``settle``, every candidate is drop-tested before ranking (settling check); with the
     scene ``surface`` (a ``Raycaster``), no fill disk goes where a camera saw through."""
-    out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source}}
+    out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source,
+                                              "gap_m": round(base_gap(inst), 4)}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
     with timings.timed("objects.candidates"):
@@ -304,7 +306,12 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     with timings.timed("objects.assets"):
         files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir, surface)
     return {**out, **files, "status": UNVERIFIED if bad else ACCEPTED,
-            "reason": None if not bad else f"kept with failed checks: {', '.join(bad)} (use --strict to reject)"}
+            "reason": kept_reason(bad, base_gap(inst), config.settle_threshold)}
+
+
+def base_gap(inst: InstanceInput) -> float:
+    """How far the instance's lowest observed points (1st percentile along up) are above its support."""
+    return float(np.percentile(inst.points[:, 2], 1)) - inst.support.height if len(inst.points) else 0.0
 
 
 def _registered(pool: list[Candidate], inst: InstanceInput, config: ObjectsConfig, timings: Timings,

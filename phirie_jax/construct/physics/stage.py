@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax import layout
+from phirie_jax.construct.objects.checks import kept_reason
 from phirie_jax.construct.physics import droptest
 from phirie_jax.construct.physics.body import ObjectBody, body_name, object_body
 from phirie_jax.construct.physics.collision import MeshError, collision_from_mesh
@@ -384,9 +385,9 @@ def record_verdicts(entries: list[ObjectRecord], results: list[droptest.DropResu
                                                                                else [])
             entry = entry.with_fields(unresolved_checks=bad)
             if entry.kept:
-                entry = entry.with_fields(
-                    status=UNVERIFIED if bad else ACCEPTED,
-                    reason=f"kept with failed checks: {', '.join(bad)} (use --strict to reject)" if bad else None)
+                gap = (entry.extra.get("support") or {}).get("gap_m")
+                entry = entry.with_fields(status=UNVERIFIED if bad else ACCEPTED,
+                                          reason=kept_reason(bad, gap, config.drop_test.max_drift))
         out.append(entry)
     return out
 

@@ -14,6 +14,7 @@ from phirie_jax.construct.objects.checks import (
     failed,
     first_by_priority,
     hull_volume,
+    kept_reason,
     not_run,
     rank,
     rank_key,
@@ -123,3 +124,22 @@ def test_automatically_discovered_instance_failing_registration_is_rejected():
     assert discovered_rejection("auto", []) is None
     for source in ("files", "external", "prompt", None):            # user evidence is kept
         assert discovered_rejection(source, ["registration"]) is None
+
+
+def test_a_hanging_object_that_fails_settling_is_said_to_hang():
+    from phirie_jax.construct.objects.generators import InstanceInput
+    from phirie_jax.construct.objects.stage import base_gap
+    from phirie_jax.frame.gravity import gravity_frame
+    from phirie_jax.observe.support import Support
+
+    rng = np.random.default_rng(0)
+    frame = gravity_frame(np.array([0.0, 0.0, 1.0]), "test")
+    support = Support(0.0, "surface", 100, np.array([0.0, 0.0, 1.0]))
+    standing = InstanceInput(1, rng.uniform([0, 0, 0.0], [0.1, 0.1, 0.2], (2000, 3)), frame, support, (), (), ())
+    hanging = InstanceInput(1, rng.uniform([0, 0, 0.09], [0.1, 0.1, 0.3], (2000, 3)), frame, support, (), (), ())
+    assert base_gap(hanging) == pytest.approx(0.09, abs=0.005) and base_gap(standing) == pytest.approx(0.0, abs=0.005)
+    assert "0.09 m above the support" in kept_reason(["settling"], base_gap(hanging), 0.03)
+    assert "hangs" not in kept_reason(["settling"], base_gap(standing), 0.03)
+    assert "hangs" not in kept_reason(["registration"], base_gap(hanging), 0.03)
+    assert "hangs" not in kept_reason(["settling"], None, 0.03)      # a record from before the gap was kept
+    assert kept_reason([], base_gap(hanging), 0.03) is None
