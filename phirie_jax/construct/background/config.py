@@ -67,7 +67,9 @@ class RemovalConfig:
         spare_seen_elsewhere: ours — R_obs ∪ R_asset spares a Gaussian that ``mask_votes`` of the
             mask views saw, unoccluded, outside the instance's mask (it is something else: the
             support around the object, a neighbour, a post in front), unless it is one of the
-            object's own visual Gaussians.
+            object's own visual Gaussians or lies at its contact (within ``support_band`` of the
+            support and ``contact_reach`` of the contact: there a Gaussian straddles the masks'
+            edge; given back, the object's rim stayed as ghosts where it stood, 15 on seed 7001).
         statuses: objects with these statuses are removed; the others stay in the background.
     """
 

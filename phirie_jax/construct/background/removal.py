@@ -349,6 +349,31 @@ def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_po
     return low[away]
 
 
+def spared_sets(means: np.ndarray, union: np.ndarray, seen_elsewhere: np.ndarray | None, own: np.ndarray,
+                contact: tuple[float, np.ndarray] | None, up, config: BackgroundConfig) -> tuple[np.ndarray, np.ndarray]:
+    """What R_obs ∪ R_asset ∪ R_mask (``union``, indices into ``means`` (N, 3)) gives back: (the
+    Gaussians mask views saw unoccluded outside the mask, ``seen_elsewhere``, None: none; the
+    support's surface away from the contact, ``support_outside_contact``). ``own``: what the object
+    carries, never given back; ``contact``: (its support's height along up, the points (P, 3) that
+    are evidence of where it meets it), None: no support sparing. At the contact itself (within
+    ``support_band`` of the support and ``contact_reach`` of the contact) nothing is given back:
+    a Gaussian there straddles the masks' edge, and being seen outside them is no evidence it is
+    not the object's (left, it is a ghost where the object stood)."""
+    up = np.asarray(up, np.float64)
+    spared, at_contact = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if contact is not None and config.removal.contact_reach > 0:
+        base, points = contact
+        low = union[means[union] @ up - base <= config.removal.support_band]
+        away = support_outside_contact(means, union, points, up, base, config.removal.support_band,
+                                       config.removal.contact_reach)
+        at_contact = np.setdiff1d(low, away, assume_unique=True)
+        spared = np.setdiff1d(away, own)
+    r_seen = np.zeros(0, np.int64)
+    if seen_elsewhere is not None:
+        r_seen = np.setdiff1d(np.setdiff1d(np.intersect1d(seen_elsewhere, union), own), at_contact)
+    return r_seen, np.setdiff1d(spared, r_seen, assume_unique=True)
+
+
 def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: tuple[Camera, ...],
                  config: BackgroundConfig, crops: CropRenderer, up=(0.0, 0.0, 1.0),
                  contacts: list[tuple[float, np.ndarray]] | None = None) -> tuple[list[np.ndarray], list[dict]]:
@@ -371,16 +396,9 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
                    else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)  # what the object carries is never spared
-        r_seen = np.zeros(0, np.int64)
-        if config.removal.spare_seen_elsewhere:
-            r_seen = np.setdiff1d(np.intersect1d(seen_elsewhere[k], union), own)
-            union = np.setdiff1d(union, r_seen, assume_unique=True)
-        spared = np.zeros(0, np.int64)
-        if contacts is not None and config.removal.contact_reach > 0:
-            base, points = contacts[k]
-            spared = np.setdiff1d(support_outside_contact(means, union, points, np.asarray(up, np.float64), base,
-                                                          config.removal.support_band, config.removal.contact_reach), own)
-            union = np.setdiff1d(union, spared, assume_unique=True)
+        r_seen, spared = spared_sets(means, union, seen_elsewhere[k] if config.removal.spare_seen_elsewhere else None,
+                                     own, None if contacts is None else contacts[k], up, config)
+        union = np.setdiff1d(union, np.union1d(r_seen, spared), assume_unique=True)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if caster is not None:
             rest = np.setdiff1d(box, union, assume_unique=True)

@@ -106,6 +106,32 @@ def test_the_support_is_spared_away_from_the_contact_only():
         [2, 3, 4])
 
 
+def test_what_views_saw_outside_the_mask_is_given_back_except_at_the_contact():
+    """spared_sets: a Gaussian the mask views saw outside the mask is given back, but not one where
+    the object meets its support (it straddles the masks' edge: left, it is a ghost of the object's
+    rim), and never one the object carries; the support away from the contact is given back."""
+    from phirie_jax.construct.background.config import BackgroundConfig
+    from phirie_jax.construct.background.removal import spared_sets
+
+    angle = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    rim = np.column_stack([0.03 * np.cos(angle), 0.03 * np.sin(angle), np.full(64, 0.006)])   # the contact
+    means = np.array([
+        [0.031, 0.0, 0.001],   # the object's rim on the support, seen outside the masks: taken
+        [0.0, 0.05, 0.05],     # a floater beside it, 5 cm up, seen outside the masks: given back
+        [0.06, 0.0, 0.0],      # the support 3 cm out, not seen: given back as the support
+        [0.0, 0.032, 0.0015],  # rim, seen outside the masks, but carried by the object: taken
+        [0.0, 0.0, 0.04],      # the object itself, not seen elsewhere: taken
+    ])
+    config = BackgroundConfig()
+    union, seen, own = np.arange(5), np.array([0, 1, 3]), np.array([3])
+    r_seen, spared = spared_sets(means, union, seen, own, (0.0, rim), np.array([0.0, 0, 1]), config)
+    np.testing.assert_array_equal(r_seen, [1])
+    np.testing.assert_array_equal(spared, [2])
+    r_seen, spared = spared_sets(means, union, seen, own, None, np.array([0.0, 0, 1]), config)
+    np.testing.assert_array_equal(r_seen, [0, 1])   # without a contact nothing marks the rim
+    assert len(spared) == 0
+
+
 def test_a_view_votes_what_it_saw_outside_the_mask():
     """_job_votes: a centre visible on the instance's mask votes for R_mask; one visible off the
     mask votes *elsewhere* (it is something else, spared from R_obs and R_asset); one behind what
