@@ -350,15 +350,18 @@ def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_po
 
 
 def spared_sets(means: np.ndarray, union: np.ndarray, seen_elsewhere: np.ndarray | None, own: np.ndarray,
-                contact: tuple[float, np.ndarray] | None, up, config: BackgroundConfig) -> tuple[np.ndarray, np.ndarray]:
+                contact: tuple[float, np.ndarray] | None, up, config: BackgroundConfig,
+                near_asset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What R_obs ∪ R_asset ∪ R_mask (``union``, indices into ``means`` (N, 3)) gives back: (the
     Gaussians mask views saw unoccluded outside the mask, ``seen_elsewhere``, None: none; the
     support's surface away from the contact, ``support_outside_contact``). ``own``: what the object
     carries, never given back; ``contact``: (its support's height along up, the points (P, 3) that
     are evidence of where it meets it), None: no support sparing. At the contact itself (within
-    ``support_band`` of the support and ``contact_reach`` of the contact) nothing is given back:
-    a Gaussian there straddles the masks' edge, and being seen outside them is no evidence it is
-    not the object's (left, it is a ghost where the object stood)."""
+    ``support_band`` of the support and ``contact_reach`` of the contact and of the placed asset,
+    ``near_asset``: indices within that reach of it; None: not limited) nothing is given back: a
+    Gaussian there straddles the masks' edge, and being seen outside them is no evidence it is not
+    the object's (left, it is a ghost where the object stood). A soft support's own surface around
+    the contact, farther from the asset, is still given back."""
     up = np.asarray(up, np.float64)
     spared, at_contact = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if contact is not None and config.removal.contact_reach > 0:
@@ -367,6 +370,8 @@ def spared_sets(means: np.ndarray, union: np.ndarray, seen_elsewhere: np.ndarray
         away = support_outside_contact(means, union, points, up, base, config.removal.support_band,
                                        config.removal.contact_reach)
         at_contact = np.setdiff1d(low, away, assume_unique=True)
+        if near_asset is not None:
+            at_contact = np.intersect1d(at_contact, near_asset, assume_unique=True)
         spared = np.setdiff1d(away, own)
     r_seen = np.zeros(0, np.int64)
     if seen_elsewhere is not None:
@@ -396,8 +401,10 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
                    else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)  # what the object carries is never spared
+        near_asset = (near_surface(means, caster, config.removal.contact_reach, index) if caster
+                      else np.zeros(0, np.int64))
         r_seen, spared = spared_sets(means, union, seen_elsewhere[k] if config.removal.spare_seen_elsewhere else None,
-                                     own, None if contacts is None else contacts[k], up, config)
+                                     own, None if contacts is None else contacts[k], up, config, near_asset)
         union = np.setdiff1d(union, np.union1d(r_seen, spared), assume_unique=True)
         r_reach, r_enclosed = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if caster is not None:
