@@ -33,6 +33,7 @@ Gaussians stay in the background) and are recorded as skipped.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -349,16 +350,24 @@ def support_outside_contact(means: np.ndarray, candidates: np.ndarray, object_po
     return low[away]
 
 
+def _near(caster: Raycaster | None, means: np.ndarray, radius: float) -> Callable[[np.ndarray], np.ndarray]:
+    """indices (K,) into ``means`` → (K,) bool: within ``radius`` of the caster's surface (or inside);
+    all False without one."""
+    if caster is None:
+        return lambda idx: np.zeros(len(idx), bool)
+    return lambda idx: caster.within(means[idx], radius)
+
+
 def spared_sets(means: np.ndarray, union: np.ndarray, seen_elsewhere: np.ndarray | None, own: np.ndarray,
                 contact: tuple[float, np.ndarray] | None, up, config: BackgroundConfig,
-                near_asset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                near_asset: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What R_obs ∪ R_asset ∪ R_mask (``union``, indices into ``means`` (N, 3)) gives back: (the
     Gaussians mask views saw unoccluded outside the mask, ``seen_elsewhere``, None: none; the
     support's surface away from the contact, ``support_outside_contact``). ``own``: what the object
     carries, never given back; ``contact``: (its support's height along up, the points (P, 3) that
     are evidence of where it meets it), None: no support sparing. At the contact itself (within
     ``support_band`` of the support and ``contact_reach`` of the contact and of the placed asset,
-    ``near_asset``: indices within that reach of it; None: not limited) nothing is given back: a
+    ``near_asset``: indices (K,) → (K,) bool, within that reach of it; None: not limited) nothing is given back: a
     Gaussian there straddles the masks' edge, and being seen outside them is no evidence it is not
     the object's (left, it is a ghost where the object stood). A soft support's own surface around
     the contact, farther from the asset, is still given back."""
@@ -370,8 +379,8 @@ def spared_sets(means: np.ndarray, union: np.ndarray, seen_elsewhere: np.ndarray
         away = support_outside_contact(means, union, points, up, base, config.removal.support_band,
                                        config.removal.contact_reach)
         at_contact = np.setdiff1d(low, away, assume_unique=True)
-        if near_asset is not None:
-            at_contact = np.intersect1d(at_contact, near_asset, assume_unique=True)
+        if near_asset is not None and len(at_contact):
+            at_contact = at_contact[near_asset(at_contact)]
         spared = np.setdiff1d(away, own)
     r_seen = np.zeros(0, np.int64)
     if seen_elsewhere is not None:
@@ -401,8 +410,7 @@ def removal_sets(data: GaussianSplatData, objects: list[ObjectInput], cameras: t
                    else np.zeros(0, np.int64))
         union = np.union1d(np.union1d(r_obs, r_asset), r_mask)
         own = near_points(means, o.visual_means, OWN_GAUSSIAN, index)  # what the object carries is never spared
-        near_asset = (near_surface(means, caster, config.removal.contact_reach, index) if caster
-                      else np.zeros(0, np.int64))
+        near_asset = _near(caster, means, config.removal.contact_reach)
         r_seen, spared = spared_sets(means, union, seen_elsewhere[k] if config.removal.spare_seen_elsewhere else None,
                                      own, None if contacts is None else contacts[k], up, config, near_asset)
         union = np.setdiff1d(union, np.union1d(r_seen, spared), assume_unique=True)

@@ -43,8 +43,8 @@ from phirie_jax.construct.background import plane as fill_mod
 from phirie_jax.construct.background import targets
 from phirie_jax.construct.background.config import BackgroundConfig
 from phirie_jax.construct.background.refine import DiskSet, refine
-from phirie_jax.construct.background.seethrough import see_through_votes
 from phirie_jax.construct.background.removal import ObjectInput, load_object, removal_sets
+from phirie_jax.construct.background.seethrough import see_through_votes
 from phirie_jax.construct.background.views import CropRenderer, make_crop
 from phirie_jax.construct.background.views import Footprints as CropFootprints
 from phirie_jax.geometry import sigmoid
@@ -93,16 +93,15 @@ class _Kept:
 
 @dataclasses.dataclass(frozen=True)
 class _Footing:
-    """Where one object stands: its support's height along up, its points (Q_i and, registered, its
-    asset's surface: its shadow on the support) and those that are evidence of where it meets the
-    support: Q_i alone. The asset's base is a completion nobody saw, verified or not: an extrusion
-    down past a draped support's edge, a visual hull's cut through a duvet the plush sinks into
-    (on snowmiku its base laid fill the held-out views saw around the plush: −0.53 dB against
-    −0.23 dB with Q_i alone, at 500 px)."""
+    """Where one object stands: its support's height along up and its points (Q_i and, registered,
+    its asset's surface: its shadow on the support). What is evidence of where it meets the support
+    is Q_i alone (the removal's sparing, the fill region): the asset's base is a completion nobody
+    saw, verified or not: an extrusion down past a draped support's edge, a visual hull's cut
+    through a duvet the plush sinks into (on snowmiku its base laid fill the held-out views saw
+    around the plush: −0.53 dB against −0.23 dB with Q_i alone, at 500 px)."""
 
     base: float
     points: np.ndarray   # (P, 3)
-    contact: np.ndarray  # (C, 3)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,7 +201,7 @@ def _load_inputs(scene_dir: str | Path | None, out_dir: Path, instance_records: 
 
 def _removal(run: _Run, config: BackgroundConfig, footings: list[_Footing]) -> tuple[list[np.ndarray], np.ndarray]:
     """R_i of every object being removed (indices into G0) and (N,) bool: in any R_i."""
-    contacts = [(f.base, f.contact) for f in footings]
+    contacts = [(f.base, o.q) for o, f in zip(run.inputs, footings)]
     sets, removal_records = (removal_sets(run.data, run.inputs, run.cameras, config, run.crops, run.up, contacts)
                              if run.inputs else ([], []))
     removed = np.zeros(run.data.num, bool)
@@ -257,7 +256,7 @@ def _footing(run: _Run, o: ObjectInput, support: Support | None, config: Backgro
     """``_Footing`` of one object; its base is the support recorded under it, else low in its Q_i."""
     base = support.height if support is not None else float(np.percentile(o.q @ run.up, BASE_PERCENTILE))
     points = fill_mod.object_points(o.q, o.mesh, config.fill.grid, config.seed)
-    return _Footing(base, points, o.q)
+    return _Footing(base, points)
 
 
 def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, support: Support | None,
@@ -285,7 +284,7 @@ def _object_fill(run: _Run, o: ObjectInput, r_i: np.ndarray, kept: _Kept, suppor
     rec.setdefault("plane_source", "ring")
     rec["plane"] = plane.as_dict()
     region = fill_mod.fill_region(plane, kept.means, kept.opacity, obj_pts,
-                                  run.data.means[r_i].astype(np.float64), config, index, footing.contact)
+                                  run.data.means[r_i].astype(np.float64), config, index, o.q)
     rec["fill"] = {"exposed_cells": region.exposed, "disks": region.num,
                    "kept_spacing_m": round(region.covered_spacing, 5)}
     if region.num == 0:

@@ -43,10 +43,10 @@ from phirie_jax.construct.objects.candidates import Candidate, candidate_pool
 from phirie_jax.construct.objects.checks import (
     candidate_checks,
     discovered_rejection,
-    kept_reason,
     failed,
     first_by_priority,
     hull_volume,
+    kept_reason,
     rank,
     rank_key,
 )
@@ -278,8 +278,9 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     """The manifest ``objects`` entry of one instance (writes its asset files when accepted).
     With ``settle``, every candidate is drop-tested before ranking (settling check); with the
     scene ``surface`` (a ``Raycaster``), no fill disk goes where a camera saw through."""
+    gap = base_gap(inst)
     out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source,
-                                              "gap_m": round(base_gap(inst), 4)}}
+                                              "gap_m": round(gap, 4)}}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
     with timings.timed("objects.candidates"):
@@ -306,7 +307,7 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     with timings.timed("objects.assets"):
         files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir, surface)
     return {**out, **files, "status": UNVERIFIED if bad else ACCEPTED,
-            "reason": kept_reason(bad, base_gap(inst), config.settle_threshold)}
+            "reason": kept_reason(bad, gap, config.settle_threshold)}
 
 
 def base_gap(inst: InstanceInput) -> float:
