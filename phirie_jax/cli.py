@@ -114,7 +114,7 @@ def _print_converted(facts: dict) -> None:
     for row in facts["objects"]:
         cells = ["—" if row[k] is None else str(row[k]) for k in
                  ("id", "status", "candidate", "drop_test", "mass", "friction", "parts", "reason")]
-        words = status_text(row["status"], row["failed_checks"])
+        words = status_text(row["status"], row["failed_checks"], row.get("mounted", False))
         cells[1] = f"[{STATUS_COLOURS.get(row['status'], 'default')}]{escape(words)}[/]"
         if row.get("mass") is not None:
             cells[4] = f"{row['mass']:.3g}" + (f" ({escape(row['mass_source'])})" if row.get("mass_source") else "")

@@ -179,6 +179,8 @@ def robot_rollouts(convert_dir: Path, media: Path, background, status) -> dict:
 
 
 def _robot_row(row: dict) -> str:
+    if row.get("mounted"):
+        return row["reason"]
     if not row["fits"]:
         return f"does not fit the gripper (narrowest width {100 * row['width_m']:.1f} cm)"
     if not row["reachable"]:

@@ -52,6 +52,7 @@ import numpy as np
 
 from kernels.gaussians import quat_multiply, quat_to_rotmat
 from kernels.pytree import pytree_dataclass
+from phirie_jax.construct.physics.body import mount_name
 from phirie_jax.interact.environment import Environment, compose_scene
 from phirie_jax.interact.mjx_model import CollisionModel, body_frame_vertices, hull_collision_spec, multi_part
 from phirie_jax.interact.robot import script
@@ -134,6 +135,8 @@ class MjxPickPlace:
         objects = [o for o in env.objects if o.id is not None]
         self.object_ids = [o.id for o in objects]
         self.object_bodies = np.array([o.body_id for o in objects])
+        self.mounted = [mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_EQUALITY, mount_name(o.body)) >= 0
+                        for o in objects]   # welded to a wall: left where it is
         self.default_task = self.task(object_id, goal)
         self.free_qpos = np.array([self.mj_model.jnt_qposadr[self.mj_model.body_jntadr[b]] for b in self.object_bodies])
         robot = env.robot
@@ -238,7 +241,8 @@ class MjxPickPlace:
     # --- pieces ---------------------------------------------------------------------------
 
     def _placed(self, data, key):
-        """Objects moved within range at random yaws, footprints clear (module docstring)."""
+        """Objects moved within range at random yaws, footprints clear (module docstring); a
+        mounted object (welded to its wall) stays where it is."""
         k = len(self.object_bodies)
         shift_key, yaw_key = jax.random.split(key)
         shifts = jax.random.uniform(shift_key, (k, CANDIDATES, 2), minval=-1.0, maxval=1.0) * self.placement_range
@@ -248,6 +252,9 @@ class MjxPickPlace:
         centre0 = qpos[self.free_qpos[:, None] + np.arange(3)] + jnp.einsum("kij,kj->ki", rot0, self.body_centres)
         chosen = []
         for i in range(k):
+            if self.mounted[i]:
+                chosen.append((centre0[i, :2], jnp.zeros((), centre0.dtype)))
+                continue
             xy = centre0[i, :2] + shifts[i]                                                    # (C, 2)
             clear = jnp.ones(CANDIDATES, bool)
             for j, (other, _) in enumerate(chosen):
@@ -256,6 +263,8 @@ class MjxPickPlace:
             pick = jnp.where(found, jnp.argmax(clear), 0)
             chosen.append((jnp.where(found, xy[pick], centre0[i, :2]), jnp.where(found, yaws[i, pick], 0.0)))
         for i, (xy, yaw) in enumerate(chosen):
+            if self.mounted[i]:
+                continue
             c, s = jnp.cos(yaw), jnp.sin(yaw)
             turn = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], rot0.dtype)
             rot = turn @ rot0[i]

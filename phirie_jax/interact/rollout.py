@@ -13,8 +13,10 @@ import os
 import tempfile
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
+from phirie_jax.construct.physics.body import mount_name
 from phirie_jax.interact.environment import Environment
 from phirie_jax.ranges import AT_LEAST_ONE, FRACTION, NON_NEGATIVE, POSITIVE, Each, Range, check_ranges
 
@@ -266,11 +268,16 @@ def simulate_pick_place(out_dir, out: Path, robot: str, base, object_id: int | N
 
 def pick_place_each(env: Environment, distance: float = 0.15) -> list[dict]:
     """The scripted pick-and-place of every object from the initial state (no rendering): each
-    row says whether it fits the gripper, is in reach, and the outcome towards ``free_goal``."""
+    row says whether it fits the gripper, is in reach, and the outcome towards ``free_goal``
+    (a mounted object, welded to its wall, is not picked: its row says so)."""
     from phirie_jax.interact.robot import script
 
     rows = []
     for o in [o for o in env.objects if o.id is not None]:
+        if mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_EQUALITY, mount_name(o.body)) >= 0:
+            rows.append({"object": o.id, "mounted": True, "success": False,
+                         "reason": "mounted: welded to its wall, it is not picked"})
+            continue
         env.reset()
         grasp = script.grasp_for(env, o.id)
         row = {"object": o.id, "width_m": grasp.width, "fits": bool(grasp.fits),

@@ -49,6 +49,7 @@ PLANE_TRIALS = 200    # RANSAC hypotheses per background plane
 MAX_RING = 4000       # ring Gaussians a plane is fitted to (a seeded subsample beyond it)
 MIN_PLANE_GAUSSIANS = 20
 SEED_IN_FRONT = 0.9   # a background plane has at least this fraction of the seed in front of it
+WALL_GAP_PERCENTILE = 2   # how far an object stands in front of a plane: this percentile of its Gaussians' distances
 MIN_SEED = 3          # Gaussians a seed needs
 SEED_BASE = 5         # the support lies below this percentile of the seed's heights
 SUPPORT_SPAN = (0.5, 0.1)  # a support spans at least these fractions of its search radius (long, short way)
@@ -433,6 +434,10 @@ def lift_prompt(number: int, prompt: Prompt, cameras: Sequence[Camera], gaussian
     members = grow(solid.points, allowed, seeds, link, extent)
     if len(members) == 0:
         return failed("every seed Gaussian lies on the support or the background (nothing above or in front)")
+    for plane in planes:
+        if plane["used"]:
+            distance = solid.points[members] @ np.asarray(plane["normal"]) - plane["offset"]
+            plane["object_gap"] = round(float(np.percentile(distance, WALL_GAP_PERCENTILE)), 5)
     record.update(gaussians=len(members), bounds=[solid.points[members].min(0).round(4).tolist(),
                                                   solid.points[members].max(0).round(4).tolist()])
     return LiftedPrompt(number, prompt, view, members, link, record)

@@ -21,7 +21,7 @@ from phirie_jax.observe.masks import Segment, ViewFailure, ViewMasks, camera_pro
 from phirie_jax.observe.prompt_config import PromptConfig
 from phirie_jax.observe.prompt_lift import LiftedPrompt, Solid, lift_prompt, rendered_set, working
 from phirie_jax.observe.prompts import Prompt
-from phirie_jax.observe.support import Support
+from phirie_jax.observe.support import Support, Wall, is_wall
 from phirie_jax.types import Camera, GaussianSplatData
 
 
@@ -130,6 +130,23 @@ def prompt_supports(lifted: Sequence[LiftedPrompt]) -> dict[int, Support]:
     return found
 
 
+def prompt_walls(lifted: Sequence[LiftedPrompt]) -> dict[int, Wall]:
+    """Prompt id → the nearest near-vertical background plane its object stands in front of
+    (``prompt_lift.background_planes`` used as background, ``support.is_wall``), for the lifted
+    prompts that found one: what holds the object if it is mounted (``ObjectsConfig.mount_gap``)."""
+    found = {}
+    for item in lifted:
+        if item.members is None:
+            continue
+        walls = [p for p in item.record.get("background_planes", ())
+                 if p.get("used") and "object_gap" in p and is_wall(p["normal"])]
+        if walls:
+            plane = min(walls, key=lambda p: p["object_gap"])
+            found[item.id] = Wall(np.asarray(plane["normal"], np.float64), float(plane["offset"]),
+                                  float(plane["object_gap"]), f"a background plane behind prompt {item.id}'s object")
+    return found
+
+
 PROMPT_RECORD = "observe/prompts.npz"   # each prompt's Gaussians: rows of the scene's PLY and their owner
 
 
@@ -180,6 +197,10 @@ class PromptMasks:
     def supports(self) -> dict[int, Support]:
         """Prompt id → the support its lift found (``prompt_supports``)."""
         return prompt_supports(self.lifted)
+
+    def walls(self) -> dict[int, Wall]:
+        """Prompt id → the wall behind its object (``prompt_walls``)."""
+        return prompt_walls(self.lifted)
 
     def views(self) -> Iterator[ViewMasks | ViewFailure]:
         return prompt_masks(self.rendered, self.cameras, self.owner, self.lifted, self.config.prompts,

@@ -54,7 +54,7 @@ from phirie_jax.observe.masks import (
     scannetpp_vertex_labels,
 )
 from phirie_jax.observe.raycast import Raycaster
-from phirie_jax.observe.support import Support, find_support
+from phirie_jax.observe.support import Support, Wall, find_support
 from phirie_jax.observe.support_fit import frame_support_plane
 from phirie_jax.observe.surface import SurfaceMesh, fuse_depths, snap_to_centres
 from phirie_jax.records import FrameRecord, InstanceRecord, plain
@@ -269,9 +269,10 @@ def silhouette_agreement(points: list[np.ndarray], members: list[list[Proposal]]
 
 def instance_record(instance_id: int, members: list[Proposal], points: np.ndarray, support: Support,
                     dropped: dict[str, int], mask_paths: dict[int, str], cameras: tuple[Camera, ...], source: str,
-                    out_dir: Path) -> dict:
+                    out_dir: Path, wall: Wall | None = None) -> dict:
     """The manifest entry of one instance of Q_i ``points`` standing on ``support`` (writes its
-    .npz); ``dropped``: the points left out, by reason."""
+    .npz), in front of ``wall`` when one was found behind it; ``dropped``: the points left out,
+    by reason."""
     if len(points) == 0:
         raise ValueError(f"no observed point of instance {instance_id} agrees with its masks ({dropped})")
     views = sorted({p.view for p in members})
@@ -301,7 +302,8 @@ def instance_record(instance_id: int, members: list[Proposal], points: np.ndarra
             "views": views, "view_names": [cameras[v].name for v in views], "num_points": len(points),
             "bounds": [points.min(0).round(6).tolist(), points.max(0).round(6).tolist()],
             "source": source, "points": rel, "confidence": round(confidence, 4),
-            "support": support.as_record(), "points_dropped": dropped}
+            "support": support.as_record(), "points_dropped": dropped,
+            **({"wall": wall.as_record()} if wall is not None else {})}
 
 
 @dataclasses.dataclass
@@ -334,9 +336,10 @@ def _lift_views(views, source: str, cameras: tuple[Camera, ...], raycaster: Rayc
 
 
 def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config: ObserveConfig, out_dir: Path,
-               timings: Timings, up: np.ndarray, raycaster: Raycaster, supports: dict[int, Support] | None = None
-               ) -> tuple[list[dict], list[dict], list[dict]]:
-    """Voxel association of the lifted proposals → (instance records, failed instances, rejected)."""
+               timings: Timings, up: np.ndarray, raycaster: Raycaster, supports: dict[int, Support] | None = None,
+               walls: dict[int, Wall] | None = None) -> tuple[list[dict], list[dict], list[dict]]:
+    """Voxel association of the lifted proposals → (instance records, failed instances, rejected);
+    ``walls``: instance id → the wall found behind it (prompts)."""
     with timings.timed("observe.associate"):
         assoc = associate(lifted.proposals, config.voxel, config.overlap, config.min_views)
     groups = [(instance_id, [lifted.proposals[i] for i in idx]) for instance_id, idx in assoc.groups]
@@ -348,7 +351,7 @@ def _instances(lifted: _Lifted, cameras: tuple[Camera, ...], source: str, config
         for (instance_id, members), (points, support, dropped) in zip(groups, kept):
             try:
                 record = instance_record(instance_id, members, points, support, dropped, lifted.mask_paths,
-                                         cameras, source, out_dir)
+                                         cameras, source, out_dir, (walls or {}).get(instance_id))
             except (OSError, ValueError) as err:
                 failed.append({"id": instance_id, "reason": f"{type(err).__name__}: {err}"})
                 continue
@@ -458,7 +461,8 @@ def observe(scene_dir: str | Path, out_dir: str | Path, config: ObserveConfig | 
                                        None if frame is None else frame.to_json(), prompt_masks)
         lifted = _lift_views(views, source, cameras, raycaster, config, out_dir, timings)
         instances, failed, rejected = _instances(lifted, cameras, source, config, out_dir, timings, up, raycaster,
-                                                 prompt_masks.supports() if prompt_masks is not None else None)
+                                                 prompt_masks.supports() if prompt_masks is not None else None,
+                                                 prompt_masks.walls() if prompt_masks is not None else None)
         record.update(masks={"source": source, "path": None if source != "external" else str(masks),
                              "failed_views": lifted.failures},
                       proposals=len(lifted.proposals), rejected_proposals=lifted.rejected + rejected,

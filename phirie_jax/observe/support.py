@@ -10,6 +10,10 @@ no higher than 1 cm above Q's 2nd-percentile height and at most ``MAX_HIDDEN_BAS
 below it (the lower part of a round object is often never seen), the densest 5 mm
 height bin wins and the support is the median of the hits within 1 cm of it. Without a
 surface (or hits), the support is Q's 2nd-percentile height and says so.
+
+A ``Wall`` is a near-vertical plane of the background the instance stands in front of (found
+behind a prompt's object, ``observe.prompt_masks.prompt_walls``): what a mounted object (a head
+on a wall, a shelf-mounted box) is held by when nothing is under it.
 """
 
 from __future__ import annotations
@@ -56,6 +60,45 @@ class Support:
         clearance = record.get("clearance")
         return Support(float(record["height"]), str(record["source"]), int(record["hits"]),
                        np.asarray(record["normal"], np.float64), None if clearance is None else float(clearance))
+
+
+WALL_TILT_DEG = 20.0    # a wall's normal is within this of horizontal
+
+
+@dataclasses.dataclass(frozen=True)
+class Wall:
+    """A near-vertical background plane behind an instance, in the world frame: points x with
+    ``normal · x = offset`` (normal towards the instance)."""
+
+    normal: np.ndarray    # (3,) unit, world frame
+    offset: float
+    gap: float            # the instance's Gaussians' 2nd-percentile distance in front of it, metres
+    source: str           # where it was found, for people
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(N,) signed distance of world ``points`` (N, 3) in front of the wall."""
+        return np.asarray(points, np.float64) @ self.normal - self.offset
+
+    def in_frame(self, rotation: np.ndarray) -> Wall:
+        """The wall in a frame rotated by ``rotation`` (3, 3) about the origin (x' = R x)."""
+        return dataclasses.replace(self, normal=np.asarray(rotation, np.float64) @ self.normal)
+
+    def as_record(self) -> dict:
+        return {"normal": np.round(self.normal, 6).tolist(), "offset": round(self.offset, 6),
+                "gap_m": round(self.gap, 4), "source": self.source}
+
+    @staticmethod
+    def from_record(record: dict | None) -> Wall | None:
+        if not record:
+            return None
+        return Wall(np.asarray(record["normal"], np.float64), float(record["offset"]), float(record["gap_m"]),
+                    str(record["source"]))
+
+
+def is_wall(normal: np.ndarray, up=(0.0, 0.0, 1.0)) -> bool:
+    """Whether a plane with this ``normal`` (3,) is near-vertical (``WALL_TILT_DEG``)."""
+    normal = np.asarray(normal, np.float64)
+    return abs(float(normal @ np.asarray(up, np.float64))) <= np.sin(np.radians(WALL_TILT_DEG)) * np.linalg.norm(normal)
 
 
 def _ring_origins(q_gravity: np.ndarray) -> np.ndarray:

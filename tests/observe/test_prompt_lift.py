@@ -200,3 +200,20 @@ def test_the_support_is_a_wide_flat_layer_under_the_seed_with_cameras_above():
     wall = Solid.of(_flat_gaussians(table[:, [2, 0, 1]] - [0.6, 0, -0.75], (1, 0, 0)), 0.1)
     none, why = find_support(wall, shown, seed, 0.15, np.array([1.3]), PromptConfig())
     assert none is None and "flat, up-facing" in why
+
+
+def test_the_nearest_vertical_background_plane_behind_a_prompt_is_its_wall():
+    from phirie_jax.observe.prompt_lift import LiftedPrompt
+    from phirie_jax.observe.prompt_masks import prompt_walls
+
+    planes = [{"normal": [0.0, 0.05, 0.9987], "offset": -0.3, "used": True, "object_gap": 0.005},   # a floor
+              {"normal": [0.8771, -0.479, 0.0367], "offset": 0.019, "used": True, "object_gap": 0.02},
+              {"normal": [-0.479, -0.8771, 0.0], "offset": 0.4, "used": True, "object_gap": 0.09},
+              {"normal": [1.0, 0.0, 0.0], "offset": 0.0, "used": False}]                            # it stands in it
+    lifted = [LiftedPrompt(1, None, 0, np.arange(5), 0.01, {"background_planes": planes}),
+              LiftedPrompt(2, None, 0, None, 0.0, {"background_planes": planes}),                     # not lifted
+              LiftedPrompt(3, None, 0, np.arange(5), 0.01, {"background_planes": planes[:1]})]
+    walls = prompt_walls(lifted)
+    assert list(walls) == [1]
+    assert walls[1].gap == 0.02 and walls[1].offset == 0.019
+    np.testing.assert_allclose(walls[1].normal, [0.8771, -0.479, 0.0367])

@@ -18,8 +18,9 @@ import math
 import numpy as np
 
 from phirie_jax.construct.objects.config import ObjectsConfig
+from phirie_jax.observe.support import Wall
 
-CHECKS = ("registration", "scale", "support", "collision", "settling")
+CHECKS = ("registration", "scale", "support", "collision", "settling", "mount")   # mount: mounted objects only
 # Checks an automatically discovered instance (no mask, box or prompt backs it) must pass to be kept:
 # a cluster no candidate registers to is a bump, a floater or a fold, not an object.
 DISCOVERED_MUST_PASS = ("registration",)
@@ -65,6 +66,32 @@ def candidate_checks(scores: dict, canonical_hull_volume: float, config: Objects
     }
 
 
+def mount_of(wall: Wall | None, base_gap: float, config: ObjectsConfig) -> Wall | None:
+    """The wall an object is mounted on (``ObjectsConfig.mount_gap``), or None: it hangs (its
+    lowest observed point ``base_gap`` metres above the support under it, more than the settling
+    threshold) and its Gaussians come within ``mount_gap`` of the ``wall`` behind it."""
+    if wall is None or base_gap <= config.settle_threshold or wall.gap > config.mount_gap:
+        return None
+    return wall
+
+
+def mount_check(placed: np.ndarray, wall: Wall, config: ObjectsConfig) -> dict:
+    """The mount check of a candidate placed at world ``placed`` vertices (V, 3): its asset
+    reaches within ``mount_gap`` of the wall it is welded to (value: how far its nearest vertex
+    stands in front of the wall, 0 when it touches or enters it)."""
+    gap = max(float(np.min(wall.distance(placed))), 0.0) if len(placed) else math.inf
+    return check(gap, config.mount_gap, bool(gap <= config.mount_gap),
+                 method="nearest point of the placed asset in front of the wall it is welded to",
+                 wall_object_gap=round(wall.gap, 4))
+
+
+def settling_welded(config: ObjectsConfig) -> dict:
+    """The settling check of a mounted object's candidate before the physics stage: not run (a
+    free drop test would only show that it falls; the physics stage tests the weld)."""
+    return check(None, config.settle_threshold, None, status="not_run",
+                 reason="mounted: the physics stage welds it to its wall and tests that it holds")
+
+
 def failed(checks: dict) -> list[str]:
     """Names of the checks that ran and failed."""
     return [name for name, c in checks.items() if c.get("passed") is False]
@@ -98,15 +125,15 @@ def first_by_priority(entries: list[dict]) -> dict | None:
     return next((e for e in valid if not failed(e["checks"])), valid[0] if valid else None)
 
 
-def kept_reason(bad: list[str], base_gap: float | None, settle_threshold: float) -> str | None:
+def kept_reason(bad: list[str], base_gap: float | None, settle_threshold: float, mounted: bool = False) -> str | None:
     """Why a kept object is not ``accepted`` (None when it is): its failed checks (``bad``). One
     whose lowest observed point is higher above the support under it (``base_gap``, metres) than the
     settling threshold cannot pass the drop test, since it falls that far: said, for it hangs or
-    is mounted (a head on a wall)."""
+    is mounted (a head on a wall) with no wall found to weld it to (``mounted``: one was)."""
     if not bad:
         return None
     reason = f"kept with failed checks: {', '.join(bad)} (use --strict to reject)"
-    if "settling" in bad and base_gap is not None and base_gap > settle_threshold:
+    if "settling" in bad and base_gap is not None and base_gap > settle_threshold and not mounted:
         reason += (f"; its lowest observed point is {base_gap:.2f} m above the support found under it: it hangs or "
                    "is mounted, and nothing holds it in the simulator")
     return reason

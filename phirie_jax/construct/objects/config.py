@@ -132,6 +132,12 @@ class ObjectsConfig:
             decomposition): the hull must be a valid solid of at least this volume, m³.
         settle_threshold: settling check: drift from the drop test (paper: 3 cm). Filled in by
             the physics stage; until then recorded as not run.
+        mount_gap: ours — an object whose lowest observed point is more than ``settle_threshold``
+            above the support under it, and whose Gaussians come within this of a wall behind it
+            (``observe.support.Wall``, found behind a prompt's object), is mounted on that wall:
+            its body is welded there (the physics stage's hold test replaces the drop test), and
+            its mount check asks the placed asset to reach within this of the wall. A taxidermy fox
+            head's Gaussians come 2.0 cm from its wall (the fox capture).
         snap_to_support: ours — after registration, move the asset vertically so its lowest point
             is on the support plane when it is within τ of it.
         hull_resolution: voxels along each side of the visual hull's carving grid (static shape);
@@ -176,6 +182,7 @@ class ObjectsConfig:
     min_support: float = 0.9
     min_hull_volume: float = 1e-7
     settle_threshold: float = 0.03
+    mount_gap: float = 0.03
     snap_to_support: bool = True
     hull_resolution: int = 64
     hull_margin: float = 0.03
@@ -204,6 +211,7 @@ class ObjectsConfig:
             "selection": Choice.of(Selection), "min_points": AT_LEAST_ONE, "max_residual": POSITIVE,
             "max_relative_residual": NON_NEGATIVE, "max_scale_discrepancy": POSITIVE,
             "min_support": FRACTION, "min_hull_volume": NON_NEGATIVE, "settle_threshold": POSITIVE,
+            "mount_gap": POSITIVE,
             "hull_resolution": Range(2), "hull_margin": NON_NEGATIVE, "hull_dilate_px": NON_NEGATIVE,
             "hull_max_misses": NON_NEGATIVE, "hull_free_space_margin": NON_NEGATIVE,
             "hull_free_space_views": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,

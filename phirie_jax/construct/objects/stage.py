@@ -47,8 +47,11 @@ from phirie_jax.construct.objects.checks import (
     first_by_priority,
     hull_volume,
     kept_reason,
+    mount_check,
+    mount_of,
     rank,
     rank_key,
+    settling_welded,
 )
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.generators import InstanceInput
@@ -69,7 +72,7 @@ from phirie_jax.frame.resolve import scene_in_world
 from phirie_jax.io.mesh import read_mesh
 from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import ACCEPTED, FAILED_OBJECT, REJECTED, UNVERIFIED, Manifest, Timings, to_dict
-from phirie_jax.observe.support import Support, find_support
+from phirie_jax.observe.support import Support, Wall, find_support
 from phirie_jax.records import InstanceRecord, ObjectRecord, plain
 from phirie_jax.types import GaussianSplatData, SceneInput
 
@@ -272,6 +275,18 @@ def settle_candidates(entries: list[dict], pool: list[Candidate], up: np.ndarray
         e["checks"] = {**e["checks"], "settling": row}
 
 
+def mount_candidates(entries: list[dict], pool: list[Candidate], wall: Wall, config: ObjectsConfig) -> None:
+    """The check tables of a mounted object's registered candidates: its mount check, and its
+    settling left to the physics stage's hold test (a free drop test would show only the fall)."""
+    by_name = {c.name: c for c in pool}
+    for e in entries:
+        if e.get("pose") is None or e["name"] not in by_name or not e.get("checks"):
+            continue
+        pose = np.asarray(e["pose"], np.float64)
+        placed = by_name[e["name"]].vertices @ pose[:3, :3].T + pose[:3, 3]
+        e["checks"] = {**e["checks"], "settling": settling_welded(config), "mount": mount_check(placed, wall, config)}
+
+
 def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: InstanceInput, scene: SceneInput,
                      config: ObjectsConfig, out_dir: Path, timings: Timings,
                      settle: Callable | None = None, surface=None) -> dict:
@@ -279,14 +294,18 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     With ``settle``, every candidate is drop-tested before ranking (settling check); with the
     scene ``surface`` (a ``Raycaster``), no fill disk goes where a camera saw through."""
     gap = base_gap(inst)
+    mount = mount_of(Wall.from_record(record.extra.get("wall")), gap, config)
     out = {**_entry_for(inst.id), "support": {"height": inst.support.height, "source": inst.support.source,
-                                              "gap_m": round(gap, 4)}}
+                                              "gap_m": round(gap, 4)},
+           **({"mount": mount.as_record()} if mount is not None else {})}
     if len(q_world) < config.min_points:
         return {**out, "reason": f"too few observed points ({len(q_world)} < min_points {config.min_points})"}
     with timings.timed("objects.candidates"):
         pool = candidate_pool(inst, scene.candidates.get(inst.id, ()), config)
     entries = _registered(pool, inst, config, timings, size_bound=record.source != "auto")
-    if settle is not None:
+    if mount is not None:
+        mount_candidates(entries, pool, mount, config)
+    elif settle is not None:
         with timings.timed("objects.settle"):
             settle_candidates(entries, pool, inst.frame.up, record.category, settle)
     chosen = _select(entries, config)
@@ -307,7 +326,7 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
     with timings.timed("objects.assets"):
         files = _write_assets(chosen, candidate, inst, q_world, scene, config, out_dir, surface)
     return {**out, **files, "status": UNVERIFIED if bad else ACCEPTED,
-            "reason": kept_reason(bad, gap, config.settle_threshold)}
+            "reason": kept_reason(bad, gap, config.settle_threshold, mount is not None)}
 
 
 def base_gap(inst: InstanceInput) -> float:

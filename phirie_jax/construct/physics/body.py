@@ -28,6 +28,7 @@ from phirie_jax.rotations import matrix_to_quat
 
 TORSIONAL_FRICTION, ROLLING_FRICTION = 0.005, 0.0001   # MuJoCo's defaults
 BODY_PREFIX = "object_"   # every object body's name starts with this (``body_name``)
+WELD_RELPOSE = 3          # a weld's data: anchor (3), then relpose (7: position, quaternion; zeros: from qpos0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +42,7 @@ class ObjectBody:
     priors: Priors
     files: tuple[str, ...] = ()    # the parts' OBJ files (canonical frame, unscaled), relative to the
                                    # output folder (scene.xml's meshes); empty for drop-test candidates
+    mounted: bool = False          # welded to the world where it is placed (a head on a wall: ``mount_name``)
 
     @property
     def scale(self) -> float:
@@ -48,19 +50,24 @@ class ObjectBody:
 
 
 def object_body(object_id: int | None, parts: Sequence[ConvexPart], pose: np.ndarray, body_priors: Priors,
-                files: Sequence[str] = ()) -> ObjectBody:
+                files: Sequence[str] = (), mounted: bool = False) -> ObjectBody:
     """The body of canonical-frame ``parts`` placed by the Sim(3) ``pose`` (4, 4): parts scaled by
     the pose's scale, uniform-density mass properties with the priors' mass."""
     pose = np.asarray(pose, np.float64)
     scale, _, _ = split_sim3(pose)
     scaled = tuple(ConvexPart(scale * p.vertices, p.faces) for p in parts)
     return ObjectBody(object_id, scaled, pose, mass_properties(scaled, body_priors.mass), body_priors,
-                      tuple(files))
+                      tuple(files), bool(mounted))
 
 
 def body_name(object_id: int) -> str:
     """The MuJoCo body (and URDF robot/link) name of an object: ``object_<id>``."""
     return f"{BODY_PREFIX}{object_id}"
+
+
+def mount_name(name: str) -> str:
+    """The weld equality that holds a mounted body ``name`` where it is placed: ``<name>_mount``."""
+    return f"{name}_mount"
 
 
 def contact(pr: Priors) -> dict:
@@ -77,7 +84,10 @@ def full_inertia(m: MassProperties) -> list[float]:
 
 def add_body(spec: mujoco.MjSpec, body: ObjectBody, name: str | None = None, placed: bool = True,
              inline: bool = False, pad_to: int = 0):
-    """Add ``body`` to ``spec``'s world as a free body; returns the ``MjsBody``.
+    """Add ``body`` to ``spec``'s world as a free body; returns the ``MjsBody``. A mounted body
+    keeps its free joint (every object has the same 7 qpos) and is held where it is placed by a
+    weld equality to the world anchored at its centre of mass (``mount_name``; its relative pose
+    is the placement).
 
     Args:
         spec: the model to add to (meshes go to its assets).
@@ -114,6 +124,11 @@ def add_body(spec: mujoco.MjSpec, body: ObjectBody, name: str | None = None, pla
             spec.add_mesh(name=mesh).uservert = part.vertices.ravel()
     for mesh in names:
         b.add_geom(name=mesh, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh, **contact(body.priors))
+    if body.mounted:
+        weld = spec.add_equality(name=mount_name(name), type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
+                                 name1="world", name2=name)
+        weld.data[:WELD_RELPOSE] = body.mass.com           # anchor (body frame); relpose 0: from the placement
+        weld.data[WELD_RELPOSE:WELD_RELPOSE + 7] = 0.0
     return b
 
 

@@ -12,6 +12,9 @@ parts. "mujoco" steps each model with the C library, one after another (the refe
 "mjx" runs a whole bucket as one vmapped program (``mjx_batch``); "warp" runs it as one MuJoCo
 Warp batch, a world per candidate (``warp_batch``).
 
+A mounted body (welded to its wall) is not dropped: ``hold_test`` simulates the exported
+``scene.xml`` and asks the weld to hold it.
+
 The construction stage's settling check calls ``drop_test_meshes`` (one convex hull per
 candidate, every candidate in one batch) and ``settling_check`` (a check-table row).
 """
@@ -30,6 +33,7 @@ from phirie_jax.construct.physics.body import ObjectBody, add_body, object_body
 from phirie_jax.construct.physics.collision import ConvexPart, MeshError, hull_part
 from phirie_jax.construct.physics.config import DropTestConfig, PhysicsConfig
 from phirie_jax.construct.physics.ground import add_drop_plane, set_drop_options
+from phirie_jax.construct.physics.mjcf import scene_motion
 from phirie_jax.construct.physics.priors import MassProperties, Priors, mass_properties, priors
 from phirie_jax.geometry import rotation_to_z, split_sim3
 from phirie_jax.rotations import matrix_to_quat, quat_angle, quat_to_matrix
@@ -248,6 +252,28 @@ def drop_test_meshes(meshes: Sequence[tuple[np.ndarray, np.ndarray]], poses: Seq
     for k, result in zip(index, drop_test(bodies, config.drop_test, backend, devices)):
         results[k] = result
     return results  # type: ignore[return-value]
+
+
+HOLD_BACKEND = "mujoco, scene.xml"
+
+
+def hold_test(scene_xml, names: Sequence[str], config: DropTestConfig = DropTestConfig()) -> dict[str, DropResult]:
+    """The drop test of mounted bodies (``ObjectBody.mounted``), by body name: the exported
+    ``scene.xml`` simulated freely for the drop test's whole time (settle + free) in MuJoCo C;
+    a body is stable when its weld holds its centre of mass within ``max_drift`` of where it was
+    placed. Nothing is dropped: the free drop would only show the fall the weld exists to stop."""
+    motion = scene_motion(scene_xml, config.settle_time + config.free_time)
+    out = {}
+    for name in names:
+        if name not in motion:
+            out[name] = DropResult.not_run(HOLD_BACKEND, f"no body {name} in {scene_xml}")
+            continue
+        moved, turned = motion[name]
+        if not np.isfinite(moved):
+            out[name] = DropResult(False, None, None, None, None, HOLD_BACKEND, "simulation diverged (non-finite state)")
+            continue
+        out[name] = DropResult(bool(moved < config.max_drift), moved, None, None, turned, HOLD_BACKEND)
+    return out
 
 
 def settling_check(result: DropResult, config: DropTestConfig = DropTestConfig(), method: str = "") -> dict:

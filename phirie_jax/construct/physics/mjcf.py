@@ -6,6 +6,9 @@ contact of the default priors), and one free body per object added by ``body.add
 the collision part files scaled by the pose's scale). Every path inside is relative to the
 output folder, where ``scene.xml`` lives.
 
+A mounted object (``ObjectBody.mounted``) is also held where it is placed by a weld to the
+world (``<equality><weld>``, anchored at its centre of mass).
+
 ``spec_xml`` writes the spec's values with 9 significant digits and the explicit
 ``fullinertia`` the spec was given. MuJoCo's own ``MjSpec.to_xml`` is not used: it compiles the
 spec, writes 6 significant digits (the timestep 1/240 becomes 0.00416667) and replaces the
@@ -23,7 +26,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from phirie_jax.construct.physics.body import BODY_PREFIX, ObjectBody, add_body, contact, numbers, xml_text
+from phirie_jax.construct.physics.body import (
+    BODY_PREFIX,
+    WELD_RELPOSE,
+    ObjectBody,
+    add_body,
+    contact,
+    numbers,
+    xml_text,
+)
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.construct.physics.priors import priors
 from phirie_jax.construct.physics.supports import BackgroundGeom
@@ -108,6 +119,13 @@ def spec_xml(spec: mujoco.MjSpec) -> str:
         _geom(world, geom)
     for body in spec.worldbody.bodies:
         _body(world, body)
+    if spec.equalities:
+        equality = ET.SubElement(root, "equality")
+        for weld in spec.equalities:
+            if weld.type != mujoco.mjtEq.mjEQ_WELD:
+                raise ValueError(f"scene equality {weld.name}: only welds are written (got {weld.type})")
+            ET.SubElement(equality, "weld", name=weld.name, body1=weld.name1, body2=weld.name2,
+                          anchor=numbers(weld.data[:WELD_RELPOSE]))
     return xml_text(root)
 
 
@@ -120,11 +138,18 @@ def scene_mjcf(bodies: Sequence[ObjectBody], background: Sequence[BackgroundGeom
 def settle_scene(scene_xml: Path, seconds: float = 2.0) -> dict[str, float]:
     """Load ``scene.xml`` in MuJoCo, simulate ``seconds`` freely and return each object body's
     centre-of-mass displacement (m), by body name."""
+    return {name: moved for name, (moved, _) in scene_motion(scene_xml, seconds).items()}
+
+
+def scene_motion(scene_xml: Path, seconds: float) -> dict[str, tuple[float, float]]:
+    """Load ``scene.xml`` in MuJoCo, simulate ``seconds`` freely: each object body's (centre-of-mass
+    displacement in m, rotation in degrees), by body name."""
     model = mujoco.MjModel.from_xml_path(str(scene_xml))
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     bodies = [b for b in range(1, model.nbody) if model.body(b).name.startswith(BODY_PREFIX)]
-    start = data.xipos[bodies].copy()
+    start, turn = data.xipos[bodies].copy(), data.xquat[bodies].copy()
     mujoco.mj_step(model, data, nstep=int(round(seconds / model.opt.timestep)))
     moved = np.linalg.norm(data.xipos[bodies] - start, axis=1)
-    return {model.body(b).name: float(d) for b, d in zip(bodies, moved)}
+    dots = np.clip(np.abs(np.sum(data.xquat[bodies] * turn, axis=1)), 0.0, 1.0)
+    return {model.body(b).name: (float(d), float(np.degrees(2 * np.arccos(c)))) for b, d, c in zip(bodies, moved, dots)}

@@ -10,7 +10,8 @@ that cannot be a rigid body (empty, non-manifold, zero volume, MuJoCo refuses it
 object "failed" with the reason; the others go on. Then the supports are fitted, ``scene.xml``
 (and ``scene.usda`` from the same records, when ``pxr`` is importable) is written and loaded
 back, all objects are drop-tested in one batch (``run_droptest``, which also re-runs on an
-exported folder alone), and a 2 s free settle of the whole scene is recorded.
+exported folder alone; a mounted object, welded to its wall, gets the hold test of the
+exported scene instead), and a 2 s free settle of the whole scene is recorded.
 
 Manifest: each object gets ``collision``, ``mass``, ``friction``, ``physics`` (priors, mass
 properties, collision report, URDF path, body name), ``drop_test`` and its ``checks.settling``
@@ -121,7 +122,14 @@ def drop_test_objects(objects: tuple[ObjectRecord, ...], up: np.ndarray, out_dir
     timings = timings if timings is not None else Timings()
     with timings.timed("droptest"):
         objects, tested, bodies = exported_bodies(objects, Path(out_dir), up, config)
-        verdicts = record_verdicts([objects[k] for k in tested], droptest.drop_test(bodies, config.drop_test), config)
+        dropped = [(k, b) for k, b in zip(tested, bodies) if not b.body.mounted]
+        held = [k for k, b in zip(tested, bodies) if b.body.mounted]
+        results = dict(zip([k for k, _ in dropped], droptest.drop_test([b for _, b in dropped], config.drop_test)))
+        if held:
+            welded = droptest.hold_test(Path(out_dir) / layout.SCENE_MJCF, [body_name(objects[k].id) for k in held],
+                                        config.drop_test)
+            results.update({k: welded[body_name(objects[k].id)] for k in held})
+        verdicts = record_verdicts([objects[k] for k in tested], [results[k] for k in tested], config)
         done = dict(zip(tested, verdicts))
     return tuple(done.get(k, o) for k, o in enumerate(objects))
 
@@ -373,9 +381,11 @@ def record_verdicts(entries: list[ObjectRecord], results: list[droptest.DropResu
     """Each object with its ``drop_test``, ``checks.settling`` and ``unresolved_checks`` from its
     result (a kept object's status follows its unresolved checks)."""
     backend = droptest.resolve_backend(config.drop_test.backend, len(entries))
-    method = f"drop test of the exported collision parts ({backend})"
+    dropped = f"drop test of the exported collision parts ({backend})"
+    held = f"hold test: mounted, welded to its wall in the exported scene ({droptest.HOLD_BACKEND})"
     out = []
     for entry, result in zip(entries, results):
+        method = held if entry.extra.get("mount") else dropped
         settling = Check.from_json("settling", droptest.settling_check(result, config.drop_test, method))
         checks = tuple(settling if c.name == "settling" else c for c in entry.checks)
         entry = dataclasses.replace(entry, drop_test=result.record(),
@@ -387,7 +397,8 @@ def record_verdicts(entries: list[ObjectRecord], results: list[droptest.DropResu
             if entry.kept:
                 gap = (entry.extra.get("support") or {}).get("gap_m")
                 entry = entry.with_fields(status=UNVERIFIED if bad else ACCEPTED,
-                                          reason=kept_reason(bad, gap, config.drop_test.max_drift))
+                                          reason=kept_reason(bad, gap, config.drop_test.max_drift,
+                                                             bool(entry.extra.get("mount"))))
         out.append(entry)
     return out
 
@@ -403,7 +414,7 @@ def exported_body(entry: ObjectRecord, out_dir: Path) -> ObjectBody:
     pr = Priors(**{**recorded, "solref": tuple(recorded["solref"]), "solimp": tuple(recorded["solimp"])})
     pr = dataclasses.replace(pr, mass=float(pr.mass if entry.mass is None else entry.mass),
                              friction=float(pr.friction if entry.friction is None else entry.friction))
-    return object_body(entry.id, parts, np.asarray(entry.pose), pr, list(entry.collision))
+    return object_body(entry.id, parts, np.asarray(entry.pose), pr, list(entry.collision), bool(entry.extra.get("mount")))
 
 
 def _load_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:

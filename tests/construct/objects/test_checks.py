@@ -15,6 +15,8 @@ from phirie_jax.construct.objects.checks import (
     first_by_priority,
     hull_volume,
     kept_reason,
+    mount_check,
+    mount_of,
     not_run,
     rank,
     rank_key,
@@ -22,6 +24,7 @@ from phirie_jax.construct.objects.checks import (
 )
 from phirie_jax.construct.objects.config import ObjectsConfig
 from phirie_jax.construct.objects.register import observed_size
+from phirie_jax.observe.support import Wall, is_wall
 
 
 def table(residual=0.005, scale=0.05, support=0.97, collision=True, settling=None, settling_passed=None):
@@ -143,3 +146,39 @@ def test_a_hanging_object_that_fails_settling_is_said_to_hang():
     assert "hangs" not in kept_reason(["registration"], base_gap(hanging), 0.03)
     assert "hangs" not in kept_reason(["settling"], None, 0.03)      # a record from before the gap was kept
     assert kept_reason([], base_gap(hanging), 0.03) is None
+
+
+def _wall(gap: float) -> Wall:
+    """A wall at x = −0.2 facing +x (towards the object), the object's Gaussians ``gap`` in front of it."""
+    return Wall(np.array([1.0, 0.0, 0.0]), -0.2, gap, "test")
+
+
+def test_a_hanging_object_near_a_wall_is_mounted_and_nothing_else_is():
+    config, wall = ObjectsConfig(), _wall(0.02)
+    assert mount_of(wall, 0.12, config) is wall                               # the fox: 0.12 m up, 2 cm from its wall
+    assert mount_of(_wall(0.02), 0.01, config) is None                        # it stands on its support
+    assert mount_of(_wall(0.08), 0.12, config) is None                        # the wall is too far to hold it
+    assert mount_of(None, 0.12, config) is None                               # no wall was found behind it
+    assert "hangs" not in kept_reason(["settling"], 0.12, 0.03, mounted=True)  # its weld failed, not the missing one
+
+
+def test_the_mount_check_asks_the_placed_asset_to_reach_its_wall():
+    config = ObjectsConfig()
+    near = np.array([[-0.19, 0.0, 0.5], [0.1, 0.0, 0.5]])                     # 1 cm from the wall
+    far = near + [0.05, 0.0, 0.0]                                             # 6 cm from it
+    into = near - [0.03, 0.0, 0.0]                                            # 2 cm into it: it touches
+    assert mount_check(near, _wall(0.02), config)["value"] == pytest.approx(0.01)
+    assert mount_check(near, _wall(0.02), config)["passed"]
+    assert not mount_check(far, _wall(0.02), config)["passed"]
+    assert mount_check(into, _wall(0.02), config)["value"] == 0.0
+    assert not mount_check(np.zeros((0, 3)), _wall(0.02), config)["passed"]
+
+
+def test_a_wall_record_round_trips_and_turns_with_its_frame():
+    wall = Wall(np.array([0.6, 0.8, 0.0]), 0.25, 0.0123, "a plane")
+    assert Wall.from_record(wall.as_record()).as_record() == wall.as_record()
+    assert Wall.from_record(None) is None
+    points = np.array([[1.0, 2.0, 3.0], [-0.5, 0.1, 0.0]])
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(wall.in_frame(turn).distance(points @ turn.T), wall.distance(points))
+    assert is_wall([0.95, 0.0, 0.3]) and not is_wall([0.5, 0.0, 0.85])      # 17.5° vs 58° from horizontal
