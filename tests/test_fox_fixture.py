@@ -92,3 +92,17 @@ def test_a_users_masks_make_the_head_an_asset(tmp_path):
     assert head["checks"]["scale"]["passed"] and head["checks"]["support"]["passed"]
     assert read_gaussian_ply(tmp_path / "out" / head["visual"]).num > 1000
     assert manifest["background"]["removed"] > 3000   # the head's source Gaussians left the background
+
+
+def test_a_prompt_on_the_head_finds_the_wall_it_is_mounted_on(tmp_path):
+    """One box around the head in one photo: the lift finds the wall behind it, the head hangs
+    above the support found under it, so it is mounted (its settling left to the hold test)."""
+    manifest = run_convert(FOX, tmp_path / "out", QUICK, stages=("observe", "objects"),
+                           prompts=["0019.jpg:33,24,111,174=fox head"])
+    (instance,) = manifest["instances"]
+    wall = instance["wall"]
+    assert abs(wall["normal"][2]) < 0.1 and 0.0 < wall["gap_m"] < 0.03      # vertical, the head just in front of it
+    (head,) = manifest["objects"]
+    assert head["mount"] == wall and head["support"]["gap_m"] > 0.03
+    assert head["checks"]["mount"]["passed"]
+    assert head["checks"]["settling"]["passed"] is None and "weld" in head["checks"]["settling"]["reason"]
