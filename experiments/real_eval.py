@@ -21,9 +21,11 @@
    ``frame.capture_to_world``, a Sim(3) x_w = s R x_c + t: world-to-camera rotation E_R Rᵀ,
    translation s E_t − E_R Rᵀ t; identity without a frame), and (b) the source Gaussians seen
    by the original camera; and (a) − (b).
-3. Per object: silhouette IoU (its placed Gaussians alone, alpha ≥ 0.5) against its instance
+3. The frame against the capture's hand-found truth (``tests/fixtures/frame_truth.json``), when
+   it has one: up's error, the scale over the truth's, whether the truth is inside the band.
+4. Per object: silhouette IoU (its placed Gaussians alone, alpha ≥ 0.5) against its instance
    mask in the held-out views, the drop test, the scale of its pose and the frame's scale source.
-4. Stage timings (manifest) and peak memory (getrusage, self and children).
+5. Stage timings (manifest) and peak memory (getrusage, self and children).
 
 Prints the result as JSON and writes ``experiments/results/real_eval_<NAME>.json``.
 Frame options (``--up``, ``--scale``, ``--known-size``, ``--known-distance``, ``--metric``) and
@@ -54,6 +56,7 @@ from phirie_jax.records import FrameRecord, ObjectRecord, plain
 from phirie_jax.types import Camera
 
 RESULTS = Path(__file__).resolve().parent / "results"
+FRAME_TRUTH = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "frame_truth.json"   # hand-found
 MIN_ALPHA = 0.5          # a rendered pixel belongs to an object's silhouette from this alpha
 
 
@@ -357,6 +360,8 @@ def evaluate(args, rest: list[str]) -> dict:
         frame = manifest.frame()
         result["frame"] = {k: plain(getattr(frame, k)) for k in ("capture_to_world", "up_source", "scale_source",
                                                                  "scale_uncertainty")} if frame is not None else None
+        if frame is not None:
+            result["frame_against_truth"] = frame_against_truth(capture.name, frame)
         result["instances"] = [{k: plain(getattr(i, k)) for k in ("id", "category", "views", "num_points", "bounds")}
                                for i in manifest.get("instances", ())]
         if prompts:
@@ -393,6 +398,23 @@ def summary(views: list[dict]) -> dict:
         out["difference_db"] = round(out["converted_psnr"] - out["source_psnr"], 3)
         out["difference_ssim"] = round(out["converted_ssim"] - out["source_ssim"], 4)
     return out
+
+
+def frame_against_truth(capture: str, frame: FrameRecord) -> dict | None:
+    """The frame the conversion used against the capture's hand-found truth (``FRAME_TRUTH``,
+    ``experiments/frame_eval.py``'s): up's error in degrees, the scale over the truth's and
+    whether the truth lies inside the stated uncertainty. None for a capture without truth."""
+    truth = json.loads(FRAME_TRUTH.read_text()).get(capture) if FRAME_TRUTH.is_file() else None
+    if not isinstance(truth, dict) or frame.capture_up is None or frame.scale is None:
+        return None
+    up = np.asarray(truth["up"], np.float64)
+    ours = np.asarray(frame.capture_up, np.float64)
+    cosine = float(ours @ up / (np.linalg.norm(ours) * np.linalg.norm(up)))
+    band = float(frame.scale_uncertainty or 1.0)
+    return {"up_error_deg": round(float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))), 3),
+            "up_tolerance_deg": truth.get("up_tolerance_deg"), "scale": frame.scale, "truth_scale": truth["scale"],
+            "scale_over_truth": round(frame.scale / truth["scale"], 4),
+            "truth_in_band": bool(frame.scale / band <= truth["scale"] <= frame.scale * band)}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -52,6 +52,29 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
     assert [c.name for c in held] == ["0000.jpg", "0008.jpg", "0016.jpg"] and len(train) == 14
 
 
+def test_real_eval_scores_the_frame_against_the_hand_found_truth():
+    """A frame at the truth's up and scale scores 0°, ratio 1, inside its band; one turned 10° and
+    3× off scores 10° and a ratio 3, outside a ×/÷ 2.5 band; a capture without truth gets None."""
+    import json
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from experiments.real_eval import FRAME_TRUTH, frame_against_truth
+    from phirie_jax.records import FrameRecord
+
+    truth = json.loads(FRAME_TRUTH.read_text())["fox"]
+    up = np.asarray(truth["up"])
+    exact = frame_against_truth("fox", FrameRecord(capture_up=up, scale=truth["scale"], scale_uncertainty=2.5))
+    assert exact["up_error_deg"] == 0.0 and exact["scale_over_truth"] == 1.0 and exact["truth_in_band"]
+    axis = np.cross(up, [1.0, 0.0, 0.0])
+    turned = Rotation.from_rotvec(np.radians(10.0) * axis / np.linalg.norm(axis)).apply(up)
+    off = frame_against_truth("fox", FrameRecord(capture_up=turned, scale=3 * truth["scale"], scale_uncertainty=2.5))
+    assert off["up_error_deg"] == pytest.approx(10.0, abs=1e-3) and off["scale_over_truth"] == pytest.approx(3.0)
+    assert not off["truth_in_band"]
+    assert frame_against_truth("no such capture", FrameRecord(capture_up=up, scale=1.0)) is None
+
+
 def test_discovery_scores_count_phantoms_and_match_one_to_one():
     """Issue 14's definition: an accepted object matching no true object at F1@20 ≥ 0.9 is a phantom;
     one true object matches one accepted object at most."""
