@@ -127,6 +127,8 @@ def main() -> None:
     parser.add_argument("--resume", nargs="+", default=None, metavar="STAGE",
                         help="run only these stages (and the frame) on the existing capture and output of an "
                              "earlier run whose later stages failed; its manifest keeps the earlier stages' times")
+    parser.add_argument("--config", nargs="+", default=(), metavar="FIELD=VALUE",
+                        help="convert's config fields, e.g. objects.workers=1 (passed as --config.FIELD VALUE)")
     args = parser.parse_args()
 
     from experiments.discovery_eval import user_capture
@@ -154,6 +156,9 @@ def main() -> None:
         # the capture links the synthesized scene's files: images outside its folder, read on purpose
         command = [sys.executable, "-m", "phirie_jax.cli", "convert", str(capture), "--out", str(out), "--masks", "auto",
                    "--allow-outside-paths"]
+        for field in args.config:
+            name, _, value = field.partition("=")
+            command += [f"--config.{name}", value]
     start, peak = time.perf_counter(), 0
     child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     log: list[str] = []
@@ -174,7 +179,7 @@ def main() -> None:
     transforms = json.loads((scene / "transforms.json").read_text())
     image = transforms["frames"][0]
     emit({"preset": args.preset, "seed": args.seed, "gaussians": ply_element_counts(capture / "point_cloud.ply")["vertex"],
-          "densify": args.densify, "resumed_stages": args.resume,
+          "densify": args.densify, "resumed_stages": args.resume, "config": list(args.config),
           "views": len(transforms["frames"]),
           "image": [image.get("w", transforms.get("w")), image.get("h", transforms.get("h"))],
           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "gpus": gpu_names(),

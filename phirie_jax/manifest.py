@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -77,10 +78,12 @@ class Timings:
     def __init__(self, values: dict | None = None):
         self.values: dict[str, float] = dict(values or {})
         self._timed: set[str] = set()  # timings recorded by this run (later blocks add to them)
+        self._lock = threading.Lock()  # blocks timed in threads add up
 
     def record(self, stage: str, seconds: float) -> None:
-        self.values[stage] = round(float(seconds), 6)
-        self._timed.add(stage)
+        with self._lock:
+            self.values[stage] = round(float(seconds), 6)
+            self._timed.add(stage)
 
     @contextlib.contextmanager
     def timed(self, name: str) -> Iterator[Elapsed]:
@@ -94,8 +97,10 @@ class Timings:
             yield elapsed
         finally:
             elapsed.seconds = time.perf_counter() - start
-            before = self.values.get(name, 0.0) if name in self._timed else 0.0
-            self.record(name, before + elapsed.seconds)
+            with self._lock:
+                before = self.values.get(name, 0.0) if name in self._timed else 0.0
+                self.values[name] = round(float(before + elapsed.seconds), 6)
+                self._timed.add(name)
 
 
 class Manifest:

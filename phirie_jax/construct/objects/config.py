@@ -168,6 +168,8 @@ class ObjectsConfig:
         fill_spacing: spacing of new Gaussians on mesh regions the capture never saw.
         fill_min_distance: mesh points farther than this from every kept Gaussian are unseen.
         colour_neighbours: new Gaussians take the mean colour of this many nearest kept ones.
+        workers: objects constructed at once, in threads (ours; 0: one per CPU core, at most one
+            per object; 1: one after another). The results do not depend on it.
         registration: the registration kernel's settings.
     """
 
@@ -198,6 +200,7 @@ class ObjectsConfig:
     fill_spacing: float = 0.004
     fill_min_distance: float = 0.008
     colour_neighbours: int = 8
+    workers: int = 0
     registration: RegistrationConfig = RegistrationConfig()
 
     def __post_init__(self):
@@ -216,4 +219,5 @@ class ObjectsConfig:
             "hull_max_misses": NON_NEGATIVE, "hull_free_space_margin": NON_NEGATIVE,
             "hull_free_space_views": NON_NEGATIVE, "extrude_cell": POSITIVE, "mesh_smooth": NON_NEGATIVE,
             "gaussian_radius": NON_NEGATIVE, "gaussian_mesh_radius": NON_NEGATIVE, "base_clearance": NON_NEGATIVE, "fill_spacing": POSITIVE,
-            "fill_min_distance": NON_NEGATIVE, "colour_neighbours": AT_LEAST_ONE})
+            "fill_min_distance": NON_NEGATIVE, "colour_neighbours": AT_LEAST_ONE,
+            "workers": Range(0, bound="0: one per CPU core")})

@@ -197,3 +197,27 @@ def test_assets_keep_the_captured_appearance(observed, constructed):
             seen = np.asarray(a.alpha) > 0.5
             mse = float(np.mean((np.asarray(a.rgb)[seen] - np.asarray(b.rgb)[seen]) ** 2))
             assert 10 * np.log10(1 / max(mse, 1e-12)) > MIN_PSNR_DB, (obj["id"], obj["candidate"], cam.name)
+
+
+def _untimed(record):
+    """A manifest record without its timings (``time_s``, ``register_s`` ...: every key ending in ``_s``)."""
+    if isinstance(record, dict):
+        return {k: _untimed(v) for k, v in record.items() if not k.endswith("_s")}
+    if isinstance(record, list):
+        return [_untimed(v) for v in record]
+    return record
+
+
+def test_objects_built_in_threads_equal_those_built_one_after_another(observed, tmp_path):
+    root, out, _, _ = observed
+    quick = ObjectsConfig(**{**FAST.__dict__, "generators": ("primitive", "extrude")})
+    runs = {}
+    for workers in (1, 3):
+        work = tmp_path / f"workers_{workers}"
+        shutil.copytree(out, work)
+        runs[workers] = run_objects(root, work, dataclasses.replace(quick, workers=workers), settle=SETTLE)["objects"]
+    assert len(runs[1]) > 1
+    for one, many in zip(runs[1], runs[3]):
+        assert _untimed(one) == _untimed(many)
+        if one.get("mesh"):
+            assert (tmp_path / "workers_1" / one["mesh"]).read_bytes() == (tmp_path / "workers_3" / many["mesh"]).read_bytes()
