@@ -31,6 +31,7 @@ from phirie_jax.construct.background.views import (
     CropJob,
     CropRenderer,
     Footprints,
+    ViewProjection,
     colourless,
     make_crop,
     pass_bucket,
@@ -73,16 +74,21 @@ def see_through_votes(data: GaussianSplatData, cameras: tuple[Camera, ...],
     every object's crops rendered in one pass. data: the capture G0 (N,)."""
     footprints = Footprints.of(data)
     plain = colourless(data)
-    per_object, jobs = [], []
+    per_object, crops_made = [], []
     for centres in cells:
         views = voting_views(cameras, centres, max_views)
         per_object.append(views)
         for view, inside in views:
             uv, _ = cameras[view].project(centres[inside])
             box = np.concatenate([np.floor(uv.min(0)), np.floor(uv.max(0))])
-            crop = make_crop(cameras[view], view, box, (crop_size,), margin=2)
-            index, *_ = footprints.cull(crop.camera)
-            jobs.append(CropJob(plain, crop, index))
+            crops_made.append(make_crop(cameras[view], view, box, (crop_size,), margin=2))
+    culled: dict[int, np.ndarray] = {}
+    for view in sorted({c.view for c in crops_made}):      # the capture projected once per view
+        projection = ViewProjection.of(footprints, cameras[view])
+        for k, crop in enumerate(crops_made):
+            if crop.view == view:
+                culled[k] = projection.cull(crop.camera)[0]
+    jobs = [CropJob(plain, crop, culled[k]) for k, crop in enumerate(crops_made)]
     images = iter(crops.render_many(jobs, pass_bucket([j.num for j in jobs]), num_features=1) if jobs else [])
     crop_of = iter(jobs)
     out = []

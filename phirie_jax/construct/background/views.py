@@ -151,9 +151,41 @@ class Footprints:
     def cull(self, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Indices (K,) of the Gaussians that can touch the camera's image, their pixel centres
         (K, 2), view depths (K,) and radius bounds (K,)."""
-        uv, z, r = _radius_bound(self.means, self.s_max, camera)
-        keep = np.flatnonzero(_visible(uv, z, r, self.opaque, camera))
-        return keep, uv[keep], z[keep], r[keep]
+        return ViewProjection.of(self, camera).cull(camera)
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewProjection:
+    """The opaque Gaussians in front of one camera pose, projected once: every crop of that view
+    (``make_crop``: the same pose, its intrinsics scaled and shifted) is culled from it without
+    transforming the capture again (a pass renders many crops of few views).
+
+    ``_radius_bound``'s arithmetic with the focal length factored out: uv = (x/z, y/z) K₂ + c and
+    the radius bound 3·sqrt((f·q)² + dilation) + margin, q = s_max (1 + |x/z| + |y/z|) / z."""
+
+    index: np.ndarray      # (M,) the Gaussians in front of the camera and opaque
+    normalized: np.ndarray  # (M, 2) x/z, y/z
+    z: np.ndarray          # (M,) view depth
+    spread: np.ndarray     # (M,) q
+
+    @classmethod
+    def of(cls, footprints: Footprints, camera: Camera) -> ViewProjection:
+        rotation, translation = camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]
+        cam = footprints.means @ rotation.T + translation
+        index = np.flatnonzero((cam[:, 2] > NEAR_PLANE) & footprints.opaque)
+        cam, s_max = cam[index], footprints.s_max[index]
+        normalized = cam[:, :2] / cam[:, 2:3]
+        spread = s_max * (1.0 + np.abs(normalized[:, 0]) + np.abs(normalized[:, 1])) / cam[:, 2]
+        return cls(index, normalized, cam[:, 2], spread)
+
+    def cull(self, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``Footprints.cull`` for ``camera``, which has this projection's pose (a crop of its view)."""
+        uv = self.normalized @ camera.K[:2, :2].T + camera.K[:2, 2]
+        focal = float(max(abs(camera.K[0, 0]), abs(camera.K[1, 1])))
+        r = SIGMA_EXTENT * np.sqrt((focal * self.spread) ** 2 + SCREEN_DILATION) + CULL_MARGIN_PX
+        keep = np.flatnonzero((uv[:, 0] + r >= 0) & (uv[:, 0] - r <= camera.width)
+                              & (uv[:, 1] + r >= 0) & (uv[:, 1] - r <= camera.height))
+        return self.index[keep], uv[keep], self.z[keep], r[keep]
 
 
 def tile_rects(uv: np.ndarray, r: np.ndarray, size: int, tile: int) -> tuple[np.ndarray, ...]:

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from phirie_jax.construct.background.targets import removed_weight_subset
-from phirie_jax.construct.background.views import CropJob, CropRenderer, Footprints, cull, make_crop, pass_bucket
+from phirie_jax.construct.background.views import (
+    CropJob,
+    CropRenderer,
+    Footprints,
+    ViewProjection,
+    cull,
+    make_crop,
+    pass_bucket,
+)
 from tests.construct.background import scene as toy
 
 WEIGHT_TOL = 1e-5  # the subset's removed weight vs the full render's: the kernel's chunked sums, rounding apart
@@ -42,6 +50,21 @@ def test_footprints_cull_as_views_cull(scene):
         idx, uv, z, r = footprints.cull(cam)
         np.testing.assert_array_equal(idx, cull(data, cam))
         assert uv.shape == (len(idx), 2) and z.shape == r.shape == (len(idx),)
+
+
+def test_a_views_projection_culls_its_crops_as_culling_each_crop_does(scene):
+    data, _, cams = scene
+    footprints = Footprints.of(data)
+    for view, cam in enumerate(cams[:3]):
+        projection = ViewProjection.of(footprints, cam)
+        for box, size in (([40, 20, 120, 100], 128), ([0, 0, 300, 260], 64), ([150, 90, 170, 110], 32)):
+            crop = make_crop(cam, view, np.array(box), (size,), 2)
+            idx, uv, z, r = projection.cull(crop.camera)
+            np.testing.assert_array_equal(idx, cull(data, crop.camera))
+            _, uv_each, z_each, r_each = footprints.cull(crop.camera)
+            np.testing.assert_allclose(uv, uv_each, rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(r, r_each, rtol=1e-12)
+            np.testing.assert_array_equal(z, z_each)
 
 
 def test_the_removed_weight_of_the_subset_is_the_full_renders(scene):
