@@ -4,8 +4,8 @@ and synthetic tabletops copied into a tilted, non-metric frame (with and without
 For each: up's error (degrees), the scale against the truth and the stated band, where up and
 the scale came from, every cue's angle to up, the warnings, and the frame's seconds.
 
-    python experiments/frame_eval.py [--real] [--synthetic tiny default] [--fitted tiny]
-                                     [--out experiments/results/frame_eval.json]
+    python -m experiments.frame_eval [--real] [--synthetic tiny default] [--marker-seeds 1 2 3]
+                                     [--fitted tiny] [--out experiments/results/frame_eval.json]
 """
 
 from __future__ import annotations
@@ -91,6 +91,8 @@ def main() -> None:
                         "without a marker and with a 15 cm one)")
     parser.add_argument("--fitted", nargs="*", default=[], help="synthetic presets fitted like a real capture "
                         "(phirie synth --fitted: the preset's fit, seed 1, no marker)")
+    parser.add_argument("--marker-seeds", nargs="+", type=int, default=[1],
+                        help="the seeds each synthetic preset is made with a marker for (without one: seed 1)")
     parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "frame_eval.json")
     args = parser.parse_args()
     results = {"real": [], "synthetic": []}
@@ -101,8 +103,9 @@ def main() -> None:
             print(json.dumps(results["real"][-1]), flush=True)
     with tempfile.TemporaryDirectory() as work:
         for preset in args.synthetic:
-            for marker in (0.0, 0.15 if preset != "tiny" else 0.25):
-                results["synthetic"].append(synthetic(preset, 1, marker, Path(work)))
+            marker = 0.15 if preset != "tiny" else 0.25
+            for seed, size in [(1, 0.0)] + [(seed, marker) for seed in args.marker_seeds]:
+                results["synthetic"].append(synthetic(preset, seed, size, Path(work)))
                 print(json.dumps(results["synthetic"][-1]), flush=True)
         for preset in args.fitted:
             results["synthetic"].append(synthetic(preset, 1, 0.0, Path(work), fitted=True))

@@ -2,14 +2,16 @@
 
 ``--marker-size METRES`` is the side of the markers' black square. Every photo is searched
 with OpenCV's ``cv2.aruco`` (the dictionary named by ``--marker-dictionary``, else the common
-families in ``DICTIONARIES``; corners refined to sub-pixels, lens distortion undone); each
+families in ``DICTIONARIES``; corners refined to sub-pixels, then taken where the square's four
+fitted edges meet, ``edge_corners``: a blurred square's corners are rounded and corner detectors
+find them inside it, 3–4 % small at 30 px a side; lens distortion undone); each
 marker's four corners are triangulated with the cameras of the photos it is seen in (linear
 triangulation, views that miss by more than ``MAX_REPROJECTION_PX`` dropped). Its side in
 capture units against METRES is the scale; its plane, turned towards the cameras that see it,
 is an up cue and a support (markers are printed and laid flat). The uncertainty is the larger
 of what the triangulated sides disagree by, what ``CORNER_BIAS_PX`` is of the square's side in
-the photos (small, blurred squares are found a little small) and ``MIN_BAND`` (printers and
-rulers).
+the photos (what is left of that bias where a side gives no clean edge) and ``MIN_BAND``
+(printers and rulers).
 """
 
 from __future__ import annotations
@@ -31,6 +33,11 @@ MIN_BAND = 1.01                 # ×/÷: a printed marker's side is known to abo
 CORNER_BIAS_PX = 0.5            # a blurred square's corners are found up to this far inside it
 WEAK_BAND = 1.05                # ×/÷ at least, from fewer than GOOD_VIEWS views
 SIGMA_DEG = 1.0                 # the plane of a flat printed marker
+EDGE_SPAN = (0.2, 0.8)          # a side's edge is sampled between these fractions of it (corners are rounded)
+EDGE_INSIDE, EDGE_OUTSIDE = 0.45, 1.0   # ... across it, from this many cells inside (within the black border) to outside
+EDGE_SAMPLES = 33               # samples across the edge
+EDGE_CONTRAST = 20.0            # grey levels between the border and the paper for a crossing to count
+MAX_EDGE_SHIFT = 0.15           # of the side: fitted corners farther than this from the detected ones are not used
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,8 +90,8 @@ def detect(cameras: tuple[Camera, ...], dictionary: str | None = None) -> list[D
     for name in names:
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        detectors.append((name, cv2.aruco.ArucoDetector(
-            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), params)))
+        dictionary_ = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+        detectors.append((name, cv2.aruco.ArucoDetector(dictionary_, params), dictionary_.markerSize + 2))
     found = []
     for view, camera in enumerate(cameras):
         if camera.image_path is None:
@@ -96,11 +103,69 @@ def detect(cameras: tuple[Camera, ...], dictionary: str | None = None) -> list[D
         if factor < 1.0:
             image = cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
         to_camera = np.array([camera.width / image.shape[1], camera.height / image.shape[0]])
-        for name, detector in detectors:
+        grey = image.astype(np.float64)
+        for name, detector, cells in detectors:
             corners, ids, _ = detector.detectMarkers(image)
             for quad, ident in zip(corners, [] if ids is None else ids.ravel()):
-                found.append(Detection(view, name, int(ident), (quad.reshape(4, 2) + 0.5) * to_camera))
+                refined = edge_corners(grey, quad.reshape(4, 2).astype(np.float64), cells)
+                found.append(Detection(view, name, int(ident), (refined + 0.5) * to_camera))
     return found
+
+
+def edge_corners(grey: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
+    """(4, 2) the corners of a detected square ``quad`` (4, 2; OpenCV pixels, centres at
+    integers) as the intersections of its four sides, each fitted through where the image
+    crosses halfway between the paper's white and the border's black (``grey`` (H, W) float).
+    A blurred square's corners are rounded, so corner detectors find them inside it; a straight
+    edge's halfway crossing stays where the edge is under any symmetric blur. ``cells``: the
+    square's cells along a side (its bits plus the black border), which bounds how far inside
+    the border the profile may look. A side that gives too few clean crossings, or corners that
+    move more than ``MAX_EDGE_SHIFT`` of the side, leave the detected corners as they were."""
+    from scipy.ndimage import map_coordinates
+
+    centre = quad.mean(0)
+    side = float(np.mean(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
+    cell = side / cells
+    lines = []
+    for k in range(4):
+        start, end = quad[k], quad[(k + 1) % 4]
+        along = (end - start) / max(np.linalg.norm(end - start), 1e-9)
+        normal = np.array([along[1], -along[0]])
+        normal = normal if normal @ ((start + end) / 2 - centre) > 0 else -normal   # outwards
+        spots = start + np.outer(np.linspace(EDGE_SPAN[0], EDGE_SPAN[1], max(5, int(side / 2))), end - start)
+        offsets = np.linspace(-EDGE_INSIDE * cell, EDGE_OUTSIDE * cell, EDGE_SAMPLES)
+        points = spots[:, None, :] + offsets[None, :, None] * normal                # (S, P, 2) x, y
+        profile = map_coordinates(grey, [points[..., 1], points[..., 0]], order=1, mode="nearest")
+        dark, light = profile.min(axis=1), profile[:, -EDGE_SAMPLES // 4:].mean(axis=1)
+        crossings = []
+        for row, lo, hi, spot in zip(profile, dark, light, spots):
+            if hi - lo < EDGE_CONTRAST:
+                continue
+            half = 0.5 * (lo + hi)
+            darkest = int(np.argmin(row))
+            above = np.flatnonzero(row[darkest:] >= half)
+            if not len(above) or above[0] == 0:
+                continue
+            j = darkest + above[0]
+            t = (half - row[j - 1]) / max(row[j] - row[j - 1], 1e-9)
+            crossings.append(spot + (offsets[j - 1] + t * (offsets[j] - offsets[j - 1])) * normal)
+        if len(crossings) < 3:
+            return quad
+        pts = np.asarray(crossings)
+        mean = pts.mean(0)
+        direction = np.linalg.svd(pts - mean)[2][0]
+        lines.append((mean, direction))
+    corners = np.empty((4, 2))
+    for k in range(4):            # corner k lies on side k − 1 and side k
+        (p, d), (q, e) = lines[k - 1], lines[k]
+        matrix = np.array([d, -e]).T
+        if abs(np.linalg.det(matrix)) < 1e-6:
+            return quad
+        a, _ = np.linalg.solve(matrix, q - p)
+        corners[k] = p + a * d
+    if np.max(np.linalg.norm(corners - quad, axis=1)) > MAX_EDGE_SHIFT * side:
+        return quad
+    return corners
 
 
 def triangulate(cameras: tuple[Camera, ...], views: list[int], pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
