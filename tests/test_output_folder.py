@@ -30,8 +30,11 @@ from phirie_jax.synthetic import synthesize
 from tests.processes import kill_quietly, wait_for
 
 CONVERSION_SECONDS = 240    # a whole tiny conversion in a child process on a loaded 2-core machine
-# A whole conversion, made cheaper where it does not matter here: no refinement steps, no report.
-CHEAP = ["--config.background.refine.iterations", "0", "--config.report.no-enabled"]
+# A whole conversion, made cheaper where it does not matter here: no refinement steps, no report,
+# CoACD's search shortened.
+CHEAP = ["--config.background.refine.iterations", "0", "--config.report.no-enabled",
+         "--config.physics.coacd.resolution", "500", "--config.physics.coacd.mcts-iterations", "20",
+         "--config.physics.coacd.mcts-nodes", "5", "--config.physics.max-parts", "4"]
 
 
 @pytest.fixture(scope="module")
