@@ -12,7 +12,8 @@ inertia exist once (``body.ObjectBody``, its ``MassProperties``) and the support
   ``MassProperties.principal``), bound to a physics material (friction, restitution);
   its ``visual`` child is the completed mesh, its ``collision/part_NN`` children the convex parts
   with ``PhysicsCollisionAPI`` and ``PhysicsMeshCollisionAPI`` (approximation ``convexHull``),
-  purpose ``guide`` (colliders, not drawn);
+  purpose ``guide`` (colliders, not drawn); a mounted object's ``mount`` child is a
+  ``PhysicsFixedJoint`` from the world (body0 unset) to it at its placement (``scene.xml``'s weld);
 * ``/World/supports/<name>``: static colliders (a collision shape without a rigid body): a box as
   a ``Cube`` of size 2 scaled by its half sizes, a plane as a ``Plane`` (infinite in PhysX, as the
   MJCF plane is in MuJoCo), with the ground's material.
@@ -38,6 +39,7 @@ from phirie_jax.io.atomic import write_text
 from phirie_jax.rotations import matrix_to_quat, quat_to_matrix
 
 WORLD = "/World"
+MOUNT_JOINT = "mount"     # a mounted object's fixed joint, a child of its body
 MISSING_PXR = "pxr is not importable (install the usd extra: pip install 'phirie_jax[usd]', i.e. usd-core)"
 
 
@@ -133,6 +135,13 @@ def _body(stage, body: ObjectBody, visual: tuple[np.ndarray, np.ndarray] | None)
         mesh = _mesh(stage, f"{path}/collision/part_{k:02d}", part.vertices, part.faces)
         mesh.CreatePurposeAttr(UsdGeom.Tokens.guide)
         _collider(mesh.GetPrim(), convex_hull=True)
+    if body.mounted:   # the weld of scene.xml: fixed to the world where it is placed
+        joint = UsdPhysics.FixedJoint.Define(stage, f"{path}/{MOUNT_JOINT}")
+        joint.CreateBody1Rel().SetTargets([prim.GetPath()])
+        joint.CreateLocalPos0Attr(Gf.Vec3f(*map(float, translation)))
+        joint.CreateLocalRot0Attr(Gf.Quatf(_quat(rotation)))
+        joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.0))
+        joint.CreateLocalRot1Attr(Gf.Quatf(1.0, 0.0, 0.0, 0.0))
 
 
 def _support(stage, geom: BackgroundGeom, material) -> None:

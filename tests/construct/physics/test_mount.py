@@ -61,3 +61,18 @@ def test_without_the_weld_the_same_body_falls_in_the_exported_scene(tmp_path):
     assert ET.parse(tmp_path / layout.SCENE_MJCF).getroot().find("equality") is None
     assert objects[3].drop_test["backend"] == "mujoco"
     assert settle_scene(tmp_path / layout.SCENE_MJCF, 2.0)[body_name(3)] == pytest.approx(RAISED, abs=0.02)
+
+
+def test_the_usd_scene_fixes_a_mounted_body_where_it_is_placed(tmp_path):
+    pxr = pytest.importorskip("pxr")
+    from phirie_jax.construct.physics.usd import MOUNT_JOINT
+    from phirie_jax.geometry import split_sim3
+
+    objects = _hanging(tmp_path, mounted=True)
+    stage = pxr.Usd.Stage.Open(str(tmp_path / layout.SCENE_USD))
+    joint = pxr.UsdPhysics.FixedJoint(stage.GetPrimAtPath(f"/World/{body_name(3)}/{MOUNT_JOINT}"))
+    assert joint and joint.GetBody0Rel().GetTargets() == []                  # the world
+    assert [str(t) for t in joint.GetBody1Rel().GetTargets()] == [f"/World/{body_name(3)}"]
+    _, _, translation = split_sim3(np.asarray(objects[3].pose))
+    np.testing.assert_allclose(np.array(joint.GetLocalPos0Attr().Get()), translation, atol=1e-6)
+    assert not stage.GetPrimAtPath(f"/World/{body_name(7)}/{MOUNT_JOINT}")    # the free body has none
