@@ -139,12 +139,21 @@ def kept_reason(bad: list[str], base_gap: float | None, settle_threshold: float,
     return reason
 
 
-def discovered_rejection(source: str | None, bad: list[str]) -> str | None:
+def discovered_rejection(source: str | None, bad: list[str], base_gap: float | None = None,
+                         settle_threshold: float = math.inf) -> str | None:
     """Why an instance found by automatic discovery (``source`` "auto") is not kept although its
     best candidate was chosen: it failed one of ``DISCOVERED_MUST_PASS`` (``bad``: the chosen
-    candidate's failed checks). None keeps it (other sources: masks, prompts, are user evidence)."""
+    candidate's failed checks), or its lowest observed point is higher above the support found
+    under it (``base_gap``, metres) than the settling threshold: nothing it stands on was seen
+    (a floater, or a fold's crest over a soft support; discovery's own support plane can lie
+    lower than the support under it). None keeps it (other sources: masks, prompts, are user
+    evidence)."""
     if source != "auto":
         return None
+    if base_gap is not None and base_gap > settle_threshold:
+        return (f"automatically discovered and its lowest observed point is {base_gap:.3f} m above the support "
+                f"found under it (> {settle_threshold} m): it stands on nothing that was seen (a floater, or a "
+                "fold of the support)")
     missed = [name for name in DISCOVERED_MUST_PASS if name in bad]
     if not missed:
         return None

@@ -319,7 +319,7 @@ def construct_object(record: InstanceRecord, q_world: np.ndarray, inst: Instance
         return {**out, "reason": f"no candidate could be registered ({reasons})"}
     bad = failed(chosen["checks"])
     out.update(candidate=chosen["name"], checks=chosen["checks"], unresolved_checks=bad)
-    discovered = discovered_rejection(record.source, bad)
+    discovered = discovered_rejection(record.source, bad, gap, config.settle_threshold)
     if discovered:
         return {**out, "status": REJECTED, "reason": discovered}
     if config.strict and bad:

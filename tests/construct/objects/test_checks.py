@@ -125,6 +125,9 @@ def test_automatically_discovered_instance_failing_registration_is_rejected():
     assert "registration" in discovered_rejection("auto", ["registration", "scale"])
     assert discovered_rejection("auto", ["scale"]) is None          # kept (its failed checks recorded)
     assert discovered_rejection("auto", []) is None
+    assert "0.043 m above the support" in discovered_rejection("auto", [], 0.0431, 0.03)   # a floater
+    assert discovered_rejection("auto", [], 0.01, 0.03) is None
+    assert discovered_rejection("masks", [], 0.12, 0.03) is None                           # user evidence: kept
     for source in ("files", "external", "prompt", None):            # user evidence is kept
         assert discovered_rejection(source, ["registration"]) is None
 
