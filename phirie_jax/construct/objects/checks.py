@@ -145,9 +145,9 @@ def discovered_rejection(source: str | None, bad: list[str], base_gap: float | N
     best candidate was chosen: it failed one of ``DISCOVERED_MUST_PASS`` (``bad``: the chosen
     candidate's failed checks), or its lowest observed point is higher above the support found
     under it (``base_gap``, metres) than the settling threshold: nothing it stands on was seen
-    (a floater, or a fold's crest over a soft support; discovery's own support plane can lie
-    lower than the support under it). None keeps it (other sources: masks, prompts, are user
-    evidence)."""
+    (a floater, or a fold's crest over a soft support; discovery measures its base against its
+    own support plane, which can pass higher there than the surface under it). None keeps it
+    (other sources: masks, prompts, are user evidence)."""
     if source != "auto":
         return None
     if base_gap is not None and base_gap > settle_threshold:
