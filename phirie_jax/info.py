@@ -109,7 +109,7 @@ STATUS_COLOURS = {"accepted": "green", "unverified": "yellow", "rejected": "red"
 def status_words(entry: ObjectRecord) -> str:
     """An object's status with what it failed: ``unverified (failed registration)``; a mounted
     object (welded to its wall) says so: ``accepted, mounted``."""
-    return status_text(entry.status, entry.unresolved_checks, bool(entry.extra.get("mount")))
+    return status_text(entry.status, entry.unresolved_checks, entry.mounted)
 
 
 def status_text(status: str, failed_checks: list[str] | None, mounted: bool = False) -> str:
@@ -141,7 +141,7 @@ def drop_verdict(entry: ObjectRecord) -> str:
         return f"not measured ({drop['error']})"
     drift = drop.get("drift_m")
     verdict = "stable" if drop.get("stable") else "unstable"
-    if entry.extra.get("mount"):
+    if entry.mounted:
         verdict = ("held" if drop.get("stable") else "not held") + " by its weld"
     return verdict + (f", drift {100 * drift:.1f} cm" if drift is not None else "")
 
@@ -227,7 +227,7 @@ def converted_facts(out_dir: Path) -> dict:
     frame = manifest.frame()
     background = manifest.background()
     objects = [{"id": o.id, "status": str(o.status), "failed_checks": o.unresolved_checks or [],
-                "mounted": bool(o.extra.get("mount")), "candidate": candidate_name(o), "drop_test": drop_verdict(o), "mass": o.mass,
+                "mounted": o.mounted, "candidate": candidate_name(o), "drop_test": drop_verdict(o), "mass": o.mass,
                 "mass_source": ((o.physics or {}).get("priors") or {}).get("mass_source"),
                 "friction": o.friction, "parts": len(o.collision) or None,
                 "reason": None if o.accepted else o.reason}

@@ -78,7 +78,7 @@ class Timings:
     def __init__(self, values: dict | None = None):
         self.values: dict[str, float] = dict(values or {})
         self._timed: set[str] = set()  # timings recorded by this run (later blocks add to them)
-        self._lock = threading.Lock()  # blocks timed in threads add up
+        self._lock = threading.RLock()  # blocks timed in threads add up
 
     def record(self, stage: str, seconds: float) -> None:
         with self._lock:
@@ -99,8 +99,7 @@ class Timings:
             elapsed.seconds = time.perf_counter() - start
             with self._lock:
                 before = self.values.get(name, 0.0) if name in self._timed else 0.0
-                self.values[name] = round(float(before + elapsed.seconds), 6)
-                self._timed.add(name)
+                self.record(name, before + elapsed.seconds)
 
 
 class Manifest:

@@ -253,6 +253,11 @@ class ObjectRecord(_Record):
         return self.extra.get("physics")
 
     @property
+    def mounted(self) -> bool:
+        """Welded to the wall behind it where it is placed (the object stage's ``mount`` record)."""
+        return bool(self.extra.get("mount"))
+
+    @property
     def support_height(self) -> float | None:
         """The height of the support the object stands on, as the object stage recorded it."""
         height = (self.extra.get("support") or {}).get("height")

@@ -52,7 +52,7 @@ import numpy as np
 
 from kernels.gaussians import quat_multiply, quat_to_rotmat
 from kernels.pytree import pytree_dataclass
-from phirie_jax.construct.physics.body import mount_name
+from phirie_jax.construct.physics.body import is_mounted
 from phirie_jax.interact.environment import Environment, compose_scene
 from phirie_jax.interact.mjx_model import CollisionModel, body_frame_vertices, hull_collision_spec, multi_part
 from phirie_jax.interact.robot import script
@@ -135,8 +135,7 @@ class MjxPickPlace:
         objects = [o for o in env.objects if o.id is not None]
         self.object_ids = [o.id for o in objects]
         self.object_bodies = np.array([o.body_id for o in objects])
-        self.mounted = [mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_EQUALITY, mount_name(o.body)) >= 0
-                        for o in objects]   # welded to a wall: left where it is
+        self.mounted = [is_mounted(self.mj_model, o.body) for o in objects]   # welded to a wall: left where it is
         self.default_task = self.task(object_id, goal)
         self.free_qpos = np.array([self.mj_model.jnt_qposadr[self.mj_model.body_jntadr[b]] for b in self.object_bodies])
         robot = env.robot

@@ -13,10 +13,9 @@ import os
 import tempfile
 from pathlib import Path
 
-import mujoco
 import numpy as np
 
-from phirie_jax.construct.physics.body import mount_name
+from phirie_jax.construct.physics.body import is_mounted
 from phirie_jax.interact.environment import Environment
 from phirie_jax.ranges import AT_LEAST_ONE, FRACTION, NON_NEGATIVE, POSITIVE, Each, Range, check_ranges
 
@@ -274,7 +273,7 @@ def pick_place_each(env: Environment, distance: float = 0.15) -> list[dict]:
 
     rows = []
     for o in [o for o in env.objects if o.id is not None]:
-        if mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_EQUALITY, mount_name(o.body)) >= 0:
+        if is_mounted(env.model, o.body):
             rows.append({"object": o.id, "mounted": True, "success": False,
                          "reason": "mounted: welded to its wall, it is not picked"})
             continue

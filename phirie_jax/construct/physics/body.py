@@ -70,6 +70,11 @@ def mount_name(name: str) -> str:
     return f"{name}_mount"
 
 
+def is_mounted(model: mujoco.MjModel, name: str) -> bool:
+    """Whether the body ``name`` of a compiled scene is held by its mount weld (``mount_name``)."""
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, mount_name(name)) >= 0
+
+
 def contact(pr: Priors) -> dict:
     """MuJoCo contact parameters of a geom with these priors: friction (3,), solref (2,), solimp (5,)."""
     return {"friction": [pr.friction, TORSIONAL_FRICTION, ROLLING_FRICTION], "solref": list(pr.solref),

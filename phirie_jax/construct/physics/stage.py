@@ -385,7 +385,7 @@ def record_verdicts(entries: list[ObjectRecord], results: list[droptest.DropResu
     held = f"hold test: mounted, welded to its wall in the exported scene ({droptest.HOLD_BACKEND})"
     out = []
     for entry, result in zip(entries, results):
-        method = held if entry.extra.get("mount") else dropped
+        method = held if entry.mounted else dropped
         settling = Check.from_json("settling", droptest.settling_check(result, config.drop_test, method))
         checks = tuple(settling if c.name == "settling" else c for c in entry.checks)
         entry = dataclasses.replace(entry, drop_test=result.record(),
@@ -397,8 +397,7 @@ def record_verdicts(entries: list[ObjectRecord], results: list[droptest.DropResu
             if entry.kept:
                 gap = (entry.extra.get("support") or {}).get("gap_m")
                 entry = entry.with_fields(status=UNVERIFIED if bad else ACCEPTED,
-                                          reason=kept_reason(bad, gap, config.drop_test.max_drift,
-                                                             bool(entry.extra.get("mount"))))
+                                          reason=kept_reason(bad, gap, config.drop_test.max_drift, entry.mounted))
         out.append(entry)
     return out
 
@@ -414,7 +413,7 @@ def exported_body(entry: ObjectRecord, out_dir: Path) -> ObjectBody:
     pr = Priors(**{**recorded, "solref": tuple(recorded["solref"]), "solimp": tuple(recorded["solimp"])})
     pr = dataclasses.replace(pr, mass=float(pr.mass if entry.mass is None else entry.mass),
                              friction=float(pr.friction if entry.friction is None else entry.friction))
-    return object_body(entry.id, parts, np.asarray(entry.pose), pr, list(entry.collision), bool(entry.extra.get("mount")))
+    return object_body(entry.id, parts, np.asarray(entry.pose), pr, list(entry.collision), entry.mounted)
 
 
 def _load_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
