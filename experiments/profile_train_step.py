@@ -23,16 +23,16 @@ training view:
   training loop calls them (a host sync per step) against 50 dispatched without syncing;
 - the same step on the exact count (no padding) and at the tight capacity.
 
-``--levers`` times the render and the loss gradient per Pallas setting (chunk, warps, prefetch)
-and the render with and without its depth channel. ``--trace DIR`` records a profiler trace of 20 steps there; the JSON gets the device time per
+``--levers`` times the colour render and the loss gradient per Pallas setting (the backward's
+chunk and block orientation, warps). ``memory``: what XLA's compiled train step holds (its
+temporaries, arguments, outputs and the outputs aliased to donated arguments, MiB) and the
+device's peak so far. ``--trace DIR`` records a profiler trace of 20 steps there; the JSON gets the device time per
 kernel of one step (``experiments.profiling``).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import itertools
 import json
 import sys
 import time
@@ -83,27 +83,44 @@ def _ms(pair) -> dict:
     return {"first_s": round(first, 4), "ms": round(later * 1e3, 3)}
 
 
+LEVER_SETTINGS = (  # the backward's (chunk, warps, entries-major blocks); the forward keeps its defaults
+    (8, 4, False), (16, 4, False), (32, 4, False), (8, 4, True), (16, 4, True), (16, 2, False), (16, 8, False))
+
+
 def _levers(params, valid, mask, K, w2c, bg, target, offset, capacity: int, config: TrainConfig, width: int,
             height: int, g_masked) -> dict:
-    """The render (colour and depth, colour only) and the loss gradient per Pallas setting."""
+    """The colour render and the loss gradient per Pallas setting (``LEVER_SETTINGS``)."""
     out = {}
-    for chunk, warps, prefetch in itertools.product((8, 16, 32), (2, 4, 8), (False, True)):
-        if prefetch and (chunk, warps) != (8, 4):
-            continue
-        settings = PallasSettings(chunk=chunk, num_warps=warps, prefetch=prefetch)
-        raster = RasterConfig(capacity=capacity, pallas=settings)
-        row = {}
-        for depth in (True, False):
-            r = dataclasses.replace(raster, depth=depth)
-            fn = jax.jit(lambda g, r=r: rasterize(g, K, w2c, width=width, height=height, background=bg,
-                                                  config=r).rgb)
-            row["forward_ms" if depth else "forward_colour_only_ms"] = _ms(timed(lambda f=fn: f(g_masked), 10))["ms"]
+    for chunk, warps, backward_entries_major in LEVER_SETTINGS:
+        settings = PallasSettings(backward_chunk=chunk, num_warps=warps, backward_entries_major=backward_entries_major)
+        raster = RasterConfig(capacity=capacity, pallas=settings, depth=False)
+        fn = jax.jit(lambda g, r=raster: rasterize(g, K, w2c, width=width, height=height, background=bg,
+                                                   config=r).rgb)
+        row = {"forward_colour_only_ms": _ms(timed(lambda f=fn: f(g_masked), 10))["ms"]}
         grad = jax.jit(jax.value_and_grad(
             lambda p, o, r=raster: splat_fit.view_loss(p, valid, mask, K, w2c, bg, target, o, config=r,
                                                        dssim_weight=config.dssim_weight)[0], argnums=(0, 1)))
         row["loss_grad_ms"] = _ms(timed(lambda f=grad: f(params, offset), 10))["ms"]
-        out[f"chunk{chunk}_warps{warps}{'_prefetch' if prefetch else ''}"] = row
-        print(f"profile_train_step: {chunk} {warps} {prefetch} {row}", file=sys.stderr, flush=True)
+        name = f"backward_chunk{chunk}_warps{warps}_{'entries' if backward_entries_major else 'pixels'}_major"
+        out[name] = row
+        print(f"profile_train_step: {name} {row}", file=sys.stderr, flush=True)
+    return out
+
+
+def _memory(fn, params, valid, mask, K, w2c, image, bg, lrs, raster: RasterConfig, config: TrainConfig) -> dict:
+    """The compiled step's memory (module docstring), in MiB."""
+    state, zeros = splat_fit.init_state(params), jnp.zeros(params.num)
+    compiled = fn.lower(params, state, lrs, valid, mask, K, w2c, image, bg, zeros, zeros,
+                        config=raster, dssim_weight=config.dssim_weight,
+                        exact_screen_gradient=config.exact_screen_gradient).compile()
+    analysis = compiled.memory_analysis()
+    mib = 2.0 ** 20
+    out = {key: round(getattr(analysis, f"{key}_size_in_bytes") / mib, 1)
+           for key in ("temp", "argument", "output", "alias", "generated_code")
+           if hasattr(analysis, f"{key}_size_in_bytes")}
+    stats = jax.local_devices()[0].memory_stats() or {}
+    if "peak_bytes_in_use" in stats:
+        out["device_peak_so_far"] = round(stats["peak_bytes_in_use"] / mib, 1)
     return out
 
 
@@ -120,7 +137,6 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
     params, valid = padded(data, size)
     K = jnp.asarray(camera.K, jnp.float32)
     w2c = jnp.asarray(camera.world_to_camera, jnp.float32)
-    Ks, w2cs, images = K[None], w2c[None], image[None]
     bg = jnp.zeros(3, jnp.float32)
     lrs = learning_rates(config, 5.0, 3000)
     mask = sh_mask(config, 6000)
@@ -179,17 +195,17 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
     def step_fn(raster_config, donate):
         static = ("config", "dssim_weight", "exact_screen_gradient")
         return jax.jit(splat_fit.train_step, static_argnames=static,
-                       donate_argnums=(0, 1, 10, 11) if donate else ())
+                       donate_argnums=(0, 1, 9, 10) if donate else ())
 
     def run_steps(fn, p, v, r, count, sync):
         s, gsum, seen = splat_fit.init_state(p), jnp.zeros(p.num), jnp.zeros(p.num)
-        out = fn(p, s, lrs, v, mask, Ks, w2cs, images, jnp.int32(0), bg, gsum, seen, config=r,
+        out = fn(p, s, lrs, v, mask, K, w2c, image, bg, gsum, seen, config=r,
                  dssim_weight=config.dssim_weight, exact_screen_gradient=config.exact_screen_gradient)
         jax.block_until_ready(out)
         p, s, _, gsum, seen = out[:5]
         t0 = time.perf_counter()
         for _ in range(count):
-            out = fn(p, s, lrs, v, mask, Ks, w2cs, images, jnp.int32(0), bg, gsum, seen, config=r,
+            out = fn(p, s, lrs, v, mask, K, w2c, image, bg, gsum, seen, config=r,
                      dssim_weight=config.dssim_weight, exact_screen_gradient=config.exact_screen_gradient)
             p, s, loss, gsum, seen = out[:5]
             if sync:
@@ -208,6 +224,7 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
         per_step = run_steps(fn, jax.tree.map(jnp.copy, p), v, RasterConfig(capacity=cap), REPEATS, sync=True)
         parts[name] = {"first_and_run_s": round(time.perf_counter() - t0, 3), "ms": round(per_step * 1e3, 3)}
     fn = step_fn(RasterConfig(capacity=loop_capacity), True)
+    result["memory"] = _memory(fn, params, valid, mask, K, w2c, image, bg, lrs, raster, config)
     for sync in (True, False):
         per_step = run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 50, sync)
         parts[f"loop_50_{'synced' if sync else 'dispatched'}"] = {"ms": round(per_step * 1e3, 3)}

@@ -21,14 +21,24 @@ def kernel_summary(trace_dir: Path, calls: int, top: int = 30) -> dict:
     names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
     device = {pid for pid, name in names.items() if name.startswith("/device:")}
     keep = device or {pid for pid, name in names.items() if name.startswith("/host:")}
-    total, count = collections.Counter(), collections.Counter()
+    total, count, details = collections.Counter(), collections.Counter(), {}
     for e in events:
         if e.get("ph") == "X" and e.get("pid") in keep and "dur" in e:
             total[e["name"]] += e["dur"]
             count[e["name"]] += 1
+            details.setdefault(e["name"], _launch_details(e.get("args") or {}))
     busy_us = sum(total.values())
     return {"source": "device streams" if device else "host threads (no device process)",
             "busy_ms_per_call": round(busy_us / 1e3 / calls, 3),
             "kernels": [{"name": name[:120], "ms_per_call": round(us / 1e3 / calls, 3),
-                         "share": round(us / max(busy_us, 1), 4), "launches_per_call": round(count[name] / calls, 2)}
+                         "share": round(us / max(busy_us, 1), 4), "launches_per_call": round(count[name] / calls, 2),
+                         **({"launch": details[name]} if details.get(name) else {})}
                         for name, us in total.most_common(top)]}
+
+
+def _launch_details(args: dict) -> str:
+    """What the tracer recorded about a kernel's launch (registers, shared memory, grid, block,
+    occupancy; the key names vary by version), as one short string."""
+    keys = ("kernel_details", "registers_per_thread", "regs", "shared_memory", "static_shared_memory_usage",
+            "dynamic_shared_memory_usage", "grid", "block", "occupancy", "theoretical_occupancy_pct")
+    return "; ".join(f"{k}={str(args[k])[:200]}" for k in keys if k in args)

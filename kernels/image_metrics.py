@@ -29,19 +29,20 @@ def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> jax.A
 
 
 def _blur(x: jax.Array, window: jax.Array) -> jax.Array:
-    """x (H, W, C) separable 'same' convolution with the 1D window (S,), zero padding. → (H, W, C)."""
-    pad = window.shape[0] // 2
-    h, w, c = x.shape
-    planes = jnp.moveaxis(x, -1, 0)[:, None]  # (C, 1, H, W)
-    kx = window.reshape(1, 1, 1, -1).astype(x.dtype)
-    ky = window.reshape(1, 1, -1, 1).astype(x.dtype)
-    dn = ("NCHW", "OIHW", "NCHW")
-    hp = jax.lax.Precision.HIGHEST
-    planes = jax.lax.conv_general_dilated(planes, kx, (1, 1), ((0, 0), (pad, pad)),
-                                          dimension_numbers=dn, precision=hp)
-    planes = jax.lax.conv_general_dilated(planes, ky, (1, 1), ((pad, pad), (0, 0)),
-                                          dimension_numbers=dn, precision=hp)
-    return jnp.moveaxis(planes[:, 0], 0, -1).reshape(h, w, c)
+    """x (H, W, C) separable 'same' convolution with the 1D window (S,), zero padding. → (H, W, C).
+
+    Each pass is S shifted, weighted copies summed: elementwise work that XLA fuses into one
+    loop per pass (and its transpose into another). A convolution library call costs more for
+    a window this small (on an H100, cuDNN's grouped convolutions took 1.26 ms of a training
+    step's loss at 1000×750)."""
+    size = window.shape[0]
+    pad = size // 2
+    h, w, _ = x.shape
+    window = window.astype(x.dtype)
+    wide = jnp.pad(x, ((0, 0), (pad, pad), (0, 0)))
+    x = sum(window[k] * wide[:, k:k + w] for k in range(size))
+    tall = jnp.pad(x, ((pad, pad), (0, 0), (0, 0)))
+    return sum(window[k] * tall[k:k + h] for k in range(size))
 
 
 def ssim_map(a: jax.Array, b: jax.Array, data_range: float = 1.0) -> jax.Array:

@@ -101,16 +101,16 @@ def screen_gradient(grad_means: jax.Array, means: jax.Array, K: jax.Array, world
 
 
 def train_step(params: Gaussians, opt_state: Any, lrs: Gaussians, valid: jax.Array, sh_mask: jax.Array,
-               Ks: jax.Array, world_to_cameras: jax.Array, images: jax.Array, view: jax.Array,
-               background: jax.Array, grad_sum: jax.Array, seen: jax.Array, *, config: RasterConfig,
-               dssim_weight: float, exact_screen_gradient: bool = False):
-    """One Adam step on view ``view`` of V training views.
+               K: jax.Array, world_to_camera: jax.Array, image: jax.Array, background: jax.Array,
+               grad_sum: jax.Array, seen: jax.Array, *, config: RasterConfig, dssim_weight: float,
+               exact_screen_gradient: bool = False):
+    """One Adam step on one training view.
 
     params: N Gaussians (padding included); lrs: a ``Gaussians`` of per-field learning rates;
-    valid (N,) bool; sh_mask (K, 1); Ks (V, 3, 3); world_to_cameras (V, 4, 4); images (V, H, W, 3)
-    float in [0, 1] or uint8; view () int32; background (3,); grad_sum (N,) and seen (N,) the
-    densification statistics so far (summed screen gradient, number of views a Gaussian was
-    visible in).
+    valid (N,) bool; sh_mask (K, 1); K (3, 3); world_to_camera (4, 4); image (H, W, 3) float in
+    [0, 1] or uint8 (the view's photo: the caller may keep its photos on the host and pass one
+    per step); background (3,); grad_sum (N,) and seen (N,) the densification statistics so far
+    (summed screen gradient, number of views a Gaussian was visible in).
 
     Returns (params, opt_state, loss, grad_sum, seen, radii (N,), overflow, needed); the loss and
     the diagnostics are of the params *before* the step. Jit with ``config``, ``dssim_weight`` and
@@ -118,7 +118,7 @@ def train_step(params: Gaussians, opt_state: Any, lrs: Gaussians, valid: jax.Arr
     incomplete): params, opt_state, grad_sum and seen come back as they went in, and the caller
     repeats the step with a larger capacity (so the inputs may be donated).
     """
-    K, w2c, target = Ks[view], world_to_cameras[view], as_float_image(images[view])
+    w2c, target = world_to_camera, as_float_image(image)
     height, width = target.shape[0], target.shape[1]
     if exact_screen_gradient:
         offset = jnp.zeros((params.num, 2), params.means.dtype)

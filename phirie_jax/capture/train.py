@@ -59,7 +59,7 @@ IN_FLIGHT = 2                  # steps dispatched before the oldest is checked (
 
 _STATIC = ("config", "dssim_weight", "exact_screen_gradient")
 _train_step = jax.jit(splat_fit.train_step, static_argnames=_STATIC)
-_train_step_donated = jax.jit(splat_fit.train_step, static_argnames=_STATIC, donate_argnums=(0, 1, 10, 11))
+_train_step_donated = jax.jit(splat_fit.train_step, static_argnames=_STATIC, donate_argnums=(0, 1, 9, 10))
 _render_view = jax.jit(lambda params, valid, K, w2c, bg, *, width, height, config: splat_fit.render_views(
     params, valid, K[None], w2c[None], bg, width=width, height=height, config=config), static_argnames=(
     "width", "height", "config"))
@@ -67,11 +67,13 @@ _render_view = jax.jit(lambda params, valid, K, w2c, bg, *, width, height, confi
 
 @dataclasses.dataclass(frozen=True)
 class Views:
-    """Training views on the device, one image size."""
+    """Training views, one image size, on the host: a step takes its view's photo to the
+    device (a few MB, while the step before runs), so the photos never occupy device memory
+    together (80 photos at 1000×750 would hold 180 MB of it)."""
 
-    Ks: jax.Array                # (V, 3, 3)
-    world_to_cameras: jax.Array  # (V, 4, 4)
-    images: jax.Array            # (V, H, W, 3) float32 in [0, 1] or uint8
+    Ks: np.ndarray                # (V, 3, 3) float32
+    world_to_cameras: np.ndarray  # (V, 4, 4) float32
+    images: np.ndarray            # (V, H, W, 3) float32 in [0, 1] or uint8
 
     @property
     def count(self) -> int:
@@ -92,9 +94,9 @@ class Views:
         if len(sizes) != 1:
             raise ValueError(f"every training view must have one size (found {sorted(sizes)})")
         stacked = np.stack(images)
-        return Views(Ks=jnp.asarray(np.stack([c.K for c in cameras]), jnp.float32),
-                     world_to_cameras=jnp.asarray(np.stack([c.world_to_camera for c in cameras]), jnp.float32),
-                     images=jnp.asarray(stacked, jnp.uint8 if stacked.dtype == np.uint8 else jnp.float32))
+        return Views(Ks=np.stack([c.K for c in cameras]).astype(np.float32),
+                     world_to_cameras=np.stack([c.world_to_camera for c in cameras]).astype(np.float32),
+                     images=stacked if stacked.dtype == np.uint8 else stacked.astype(np.float32))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,6 +283,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     step_fn = _train_step_donated if donate else _train_step
     programs: set = set()
     compile_calls, step_times = [], []  # seconds of the calls that compiled a program; between checked steps
+    densify_s = 0.0                     # host time densifying (a device round trip of every Gaussian each)
     inflight: list[tuple] = []          # (outputs, view) dispatched, not checked yet
     t0 = last_checked = time.perf_counter()
     written: _Written | None = None   # the checkpoint being written
@@ -310,7 +313,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 view = loop.order.pop(0)
                 key, t_call = (int(valid.shape[0]), raster.capacity), time.perf_counter()
                 out = step_fn(params, state, learning_rates(config, extent, ahead), valid, sh_mask(config, ahead),
-                              views.Ks, views.world_to_cameras, views.images, jnp.int32(view), bg, grad_sum, seen,
+                              views.Ks[view], views.world_to_cameras[view], views.images[view], bg, grad_sum, seen,
                               config=raster, dssim_weight=config.dssim_weight,
                               exact_screen_gradient=config.exact_screen_gradient)
                 if key not in programs:
@@ -333,6 +336,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
             loop.step += 1
             s = loop.step
             if densifies(s):
+                t_densify = time.perf_counter()
                 host = unpadded(params, valid)
                 n = host.num
                 grad = np.asarray(grad_sum[:n]) / np.maximum(np.asarray(seen[:n]), 1.0)
@@ -345,6 +349,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 state = carry_state(state, source, size)
                 grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
                 loop.events.append({"step": s, "gaussians": host.num, **counts})
+                densify_s += time.perf_counter() - t_densify
             if resets(s):
                 params, state = reset_opacity(params, state, RESET_CEILING * config.min_opacity)
                 loop.resets.append(s)
@@ -371,7 +376,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         "backend": jax.default_backend(), "device": str(jax.devices()[0]), "resumed_at": resumed_at,
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
         # calls that compiled, less a step each; ~0 when this process compiled the programs for an earlier run
-        "compile_s": round(compile_s, 3), "run_s": round(wall_s - compile_s, 3)}
+        "compile_s": round(compile_s, 3), "run_s": round(wall_s - compile_s, 3), "densify_s": round(densify_s, 3)}
     return Trained(gaussians, raster, list(loop.losses), record)
 
 
@@ -389,7 +394,7 @@ def views_psnr(data: GaussianSplatData, views: Views, background, raster: Raster
             if not bool(overflow):
                 break
             raster = grown_capacity(raster, 2 * raster.capacity, "score at a lower resolution")
-        target = np.asarray(image, np.float64) / (255.0 if image.dtype == jnp.uint8 else 1.0)
+        target = np.asarray(image, np.float64) / (255.0 if image.dtype == np.uint8 else 1.0)
         rgb = np.asarray(rgb[0], np.float64)
         mse = np.mean(((np.clip(rgb, 0.0, 1.0) if clip else rgb) - target) ** 2)
         psnr.append(10.0 * np.log10(1.0 / max(mse, 1e-12)))

@@ -118,8 +118,8 @@ def test_screen_gradient_statistics_match_plain_autodiff(toy):
                                        jnp.zeros(3), views.images[v], offset, config=reference, dssim_weight=0.2)[0]
 
         g = np.asarray(jax.grad(loss)(jnp.zeros((256, 2))))
-        out = step(params, state, learning_rates(TOY, EXTENT, 0), valid, sh_mask(TOY, 0), views.Ks,
-                   views.world_to_cameras, views.images, jnp.int32(view), jnp.zeros(3), grad_sum, seen,
+        out = step(params, state, learning_rates(TOY, EXTENT, 0), valid, sh_mask(TOY, 0), views.Ks[view],
+                   views.world_to_cameras[view], views.images[view], jnp.zeros(3), grad_sum, seen,
                    config=raster, dssim_weight=0.2, exact_screen_gradient=True)
         radii = np.asarray(out[5])
         expected_seen += radii > 0

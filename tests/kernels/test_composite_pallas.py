@@ -10,6 +10,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jax import export
 
 from kernels.composite import TileGrid
@@ -26,6 +27,11 @@ CHUNK = 8           # small, so a tile list spans several chunks
 JAX = RasterConfig(capacity=1 << 11, compositor="jax", chunk=CHUNK, slots=2)
 PALLAS = RasterConfig(capacity=1 << 11, compositor="pallas",
                       pallas=PallasSettings(chunk=CHUNK, interpret=True))
+# the other block orientation in each kernel than the defaults, and the forward's chunk size
+# in the backward
+FLIPPED = dataclasses.replace(PALLAS, pallas=dataclasses.replace(
+    PALLAS.pallas, forward_entries_major=not PALLAS.pallas.forward_entries_major,
+    backward_entries_major=not PALLAS.pallas.backward_entries_major, backward_chunk=CHUNK))
 
 
 def single_gaussian(K, w2c, n: int) -> Gaussians:
@@ -66,7 +72,8 @@ render = jax.jit(lambda g, f, b, K, w2c, config: rasterize(
 gradient = jax.jit(jax.grad(_loss, argnums=(0, 1, 2)), static_argnums=6)
 
 
-def test_pallas_equals_jax_compositor():
+@pytest.mark.parametrize("pallas", [PALLAS, FLIPPED], ids=["default_blocks", "flipped_blocks"])
+def test_pallas_equals_jax_compositor(pallas):
     K, w2c = camera(WIDTH, HEIGHT)
     g, feats = random_scene(seed=5, n=120)
     bg = jnp.asarray([0.2, 0.5, 0.9], jnp.float32)
@@ -76,11 +83,11 @@ def test_pallas_equals_jax_compositor():
     scenes = {"scene": g, "one_gaussian": single_gaussian(K, w2c, g.num),
               "all_behind": behind(g, w2c)}
     for name, gaussians in scenes.items():
-        ref, got = (render(gaussians, feats, bg, K, w2c, c) for c in (JAX, PALLAS))
+        ref, got = (render(gaussians, feats, bg, K, w2c, c) for c in (JAX, pallas))
         for key in ("rgb", "depth", "alpha", "features"):
             np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=IMAGE_ATOL,
                                        err_msg=f"{name} {key}")
-        expected, grads = (gradient(gaussians, feats, bg, weights, K, w2c, c) for c in (JAX, PALLAS))
+        expected, grads = (gradient(gaussians, feats, bg, weights, K, w2c, c) for c in (JAX, pallas))
         for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
             scale = float(jnp.max(jnp.abs(b)))
             np.testing.assert_allclose(a, b, atol=GRAD_RTOL * max(scale, 1e-6), err_msg=name)
@@ -112,10 +119,13 @@ def test_lists_cut_by_the_capacity_composite_alike():
                                    err_msg=f"read ahead {key}")
 
 
-def test_kernels_lower_to_triton():
-    """Forward and backward kernels lower to Triton for a CUDA target (no GPU needed)."""
+@pytest.mark.parametrize("entries_major", [False, True])
+def test_kernels_lower_to_triton(entries_major):
+    """Forward and backward kernels lower to Triton for a CUDA target (no GPU needed), in
+    either block orientation."""
     grid = TileGrid(WIDTH, HEIGHT)
-    settings = PallasSettings(chunk=16)
+    settings = PallasSettings(chunk=16, backward_chunk=8, forward_entries_major=entries_major,
+                              backward_entries_major=entries_major)
     n, capacity = 64, 512
 
     def loss(params, ids, start, count):

@@ -72,7 +72,7 @@ def test_train_step_lowers_the_loss_and_counts_visibility():
     losses = []
     for i in range(30):
         params, state, loss, grad_sum, seen, radii, overflow, _ = step(
-            params, state, lrs, valid, sh_mask, Ks, w2cs, images, jnp.int32(i % 2), bg, grad_sum, seen,
+            params, state, lrs, valid, sh_mask, Ks[i % 2], w2cs[i % 2], images[i % 2], bg, grad_sum, seen,
             config=config, dssim_weight=0.2)
         assert not bool(overflow)
         losses.append(float(loss))
