@@ -37,8 +37,7 @@ def kernel_summary(trace_dir: Path, calls: int, top: int = 30) -> dict:
 
 
 def _launch_details(args: dict) -> str:
-    """What the tracer recorded about a kernel's launch (registers, shared memory, grid, block,
-    occupancy; the key names vary by version), as one short string."""
-    keys = ("kernel_details", "registers_per_thread", "regs", "shared_memory", "static_shared_memory_usage",
-            "dynamic_shared_memory_usage", "grid", "block", "occupancy", "theoretical_occupancy_pct")
+    """What the GPU tracer recorded about a kernel's launch (registers a thread, shared memory,
+    grid, block, occupancy), as one short string ('' where it recorded none: a CPU)."""
+    keys = ("kernel_details", "theoretical_occupancy_pct")
     return "; ".join(f"{k}={str(args[k])[:200]}" for k in keys if k in args)

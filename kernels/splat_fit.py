@@ -118,18 +118,19 @@ def train_step(params: Gaussians, opt_state: Any, lrs: Gaussians, valid: jax.Arr
     incomplete): params, opt_state, grad_sum and seen come back as they went in, and the caller
     repeats the step with a larger capacity (so the inputs may be donated).
     """
-    w2c, target = world_to_camera, as_float_image(image)
+    target = as_float_image(image)
     height, width = target.shape[0], target.shape[1]
     if exact_screen_gradient:
         offset = jnp.zeros((params.num, 2), params.means.dtype)
         (loss, (radii, overflow, needed)), (grads, g_screen) = jax.value_and_grad(
-            view_loss, argnums=(0, 7), has_aux=True)(params, valid, sh_mask, K, w2c, background, target, offset,
-                                                     config=config, dssim_weight=dssim_weight)
+            view_loss, argnums=(0, 7), has_aux=True)(params, valid, sh_mask, K, world_to_camera, background, target,
+                                                     offset, config=config, dssim_weight=dssim_weight)
         g2 = jnp.hypot(g_screen[:, 0] * (0.5 * width), g_screen[:, 1] * (0.5 * height))
     else:
         (loss, (radii, overflow, needed)), grads = jax.value_and_grad(view_loss, has_aux=True)(
-            params, valid, sh_mask, K, w2c, background, target, config=config, dssim_weight=dssim_weight)
-        g2 = screen_gradient(grads.means, params.means, K, w2c, width, height)
+            params, valid, sh_mask, K, world_to_camera, background, target, config=config,
+            dssim_weight=dssim_weight)
+        g2 = screen_gradient(grads.means, params.means, K, world_to_camera, width, height)
     updates, new_state = optimizer().update(grads, opt_state, params)
     new_params = jax.tree.map(lambda p, u, lr: p + lr * u, params, updates, lrs)
     visible = (radii > 0) & valid
