@@ -91,7 +91,7 @@ def test_densify_clones_small_splits_large_and_prunes():
         opacity_logits=np.float32([2, 2, 2, 2, -9, 2]), sh=np.zeros((n, 16, 3), np.float32))
     grad = np.float32([1, 0, 1, 0, 0, 0])
     config = FitConfig(grad_threshold=0.5, percent_dense=0.01, max_scale=0.1, min_opacity=0.005)
-    out, source, counts = densify_and_prune(data, grad, 1.0, config, np.random.default_rng(0))
+    out, source, counts = densify_and_prune(data, grad, 1.0, config, np.random.default_rng(0).normal(size=(2, n, 3)))
     assert counts == {"cloned": 1, "split": 1, "pruned": 2}  # the transparent one and the huge one
     assert out.num == 6  # 5 unsplit + 1 clone + 2 children − 2 pruned
     assert sorted(source.tolist()) == [-1, -1, -1, 0, 1, 3]

@@ -1,4 +1,4 @@
-"""Between 3DGS training steps, on the host: clone, split, prune, reset opacities, pad to buckets.
+"""Between 3DGS training steps: clone, split, prune, reset opacities, pad to buckets.
 
 The rules are those of the reference implementation (Kerbl et al. 2023) and gsplat's
 ``DefaultStrategy``:
@@ -14,26 +14,30 @@ The rules are those of the reference implementation (Kerbl et al. 2023) and gspl
   Gaussians that are not needed fade and are pruned.
 
 Gaussians that densification creates start with zero Adam moments; the others keep theirs.
-Arrays live on the device padded to power-of-two buckets (``phirie_jax.render.gaussian_bucket``)
-with transparent padding and a ``valid`` mask, so a training compiles a handful of programs.
+Training densifies on the device (``densify_on_device``: ``kernels.densify``'s two programs, one
+count read back); ``densify_and_prune`` states the same rules on the host, in NumPy, and is the
+reference the kernels are tested against. Arrays live on the device padded to power-of-two
+buckets (``phirie_jax.render.gaussian_bucket``) with transparent padding and a ``valid`` mask,
+so a training compiles a handful of programs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kernels import densify as densify_kernels
 from kernels import splat_fit
+from kernels.densify import PAD_LOG_SCALE, SPLIT_SHRINK, DensifyLimits
 from kernels.gaussians import Gaussians
 from phirie_jax.geometry import sigmoid
+from phirie_jax.render import gaussian_bucket
 from phirie_jax.types import GaussianSplatData
-
-SPLIT_SHRINK = 1.6  # a split Gaussian's children have its scale / this (3DGS)
-PAD_LOG_SCALE = -10.0
 
 
 class DensifyRule(Protocol):
@@ -54,9 +58,12 @@ def quat_matrices(q: np.ndarray) -> np.ndarray:
                      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
 
 
-def densify_and_prune(data: GaussianSplatData, grad: np.ndarray, extent: float, rule: DensifyRule, rng,
-                      densify: bool = True, prune_large: bool = True) -> tuple[GaussianSplatData, np.ndarray, dict]:
-    """Clone, split and prune (module docstring). grad (N,) mean screen gradient of each Gaussian.
+def densify_and_prune(data: GaussianSplatData, grad: np.ndarray, extent: float, rule: DensifyRule,
+                      noise: np.ndarray, densify: bool = True, prune_large: bool = True
+                      ) -> tuple[GaussianSplatData, np.ndarray, dict]:
+    """Clone, split and prune (module docstring), on the host. grad (N,) mean screen gradient of
+    each Gaussian; noise (2, N, 3) standard normal samples: child k of a split row i is offset
+    by R_i (noise[k, i] ⊙ scale_i).
 
     Returns the new set, the source row (M,) of each new Gaussian in ``data`` (−1 for the Gaussians
     densification created: their Adam moments start at zero, as in 3DGS) and the counts."""
@@ -77,8 +84,8 @@ def densify_and_prune(data: GaussianSplatData, grad: np.ndarray, extent: float, 
     if split.any():
         parent = data.subset(split)
         rot = quat_matrices(parent.quats.astype(np.float64))
-        for _ in range(2):
-            local = rng.normal(size=(parent.num, 3)) * np.exp(parent.log_scales)
+        for k in range(2):
+            local = np.asarray(noise[k], np.float64)[split] * np.exp(parent.log_scales)
             child = dataclasses.replace(parent, means=(parent.means + np.einsum("nij,nj->ni", rot, local)).astype(
                 np.float32), log_scales=(parent.log_scales - np.log(SPLIT_SHRINK)).astype(np.float32))
             parts.append(child)
@@ -92,6 +99,45 @@ def densify_and_prune(data: GaussianSplatData, grad: np.ndarray, extent: float, 
     return grown.subset(alive), source[alive], counts
 
 
+def densify_limits(rule: DensifyRule, extent: float, prune_large: bool) -> DensifyLimits:
+    """The rule's thresholds in the scene's units, as ``kernels.densify`` reads them."""
+    return DensifyLimits(grad_threshold=jnp.float32(rule.grad_threshold),
+                         dense_size=jnp.float32(rule.percent_dense * extent), min_opacity=jnp.float32(rule.min_opacity),
+                         max_size=jnp.float32(rule.max_scale * extent), prune_large=jnp.bool_(prune_large),
+                         max_gaussians=jnp.int32(rule.max_gaussians))
+
+
+@jax.jit
+def _plan(params: Gaussians, valid, grad_sum, seen, limits: DensifyLimits):
+    return densify_kernels.plan(params, valid, grad_sum / jnp.maximum(seen, 1.0), limits)
+
+
+def children_noise(key, rows: int) -> jax.Array:
+    """(2, rows, 3) the split children's standard normal samples, from a JAX key."""
+    return jax.random.normal(key, (2, rows, 3), jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames="size")
+def _apply(params: Gaussians, state, plan, key, *, size: int):
+    return densify_kernels.apply(params, state, plan, children_noise(key, params.num), size)
+
+
+def densify_on_device(params: Gaussians, valid: jax.Array, state: Any, grad_sum: jax.Array, seen: jax.Array,
+                      extent: float, rule: DensifyRule, key, prune_large: bool = True
+                      ) -> tuple[Gaussians, jax.Array, Any, dict]:
+    """``densify_and_prune`` on the padded device set (noise from ``key``: ``children_noise``).
+
+    params (S rows, valid first), valid (S,), state (the optimizer's, per-Gaussian leaves of S
+    rows), grad_sum (S,) and seen (S,) the screen gradients summed since the last densification
+    and the views each Gaussian was seen in. Returns the set padded to the bucket of its new
+    count, its valid mask, the state carried over and the counts (the new count, cloned, split, pruned)."""
+    plan = _plan(params, valid, grad_sum, seen, densify_limits(rule, extent, prune_large))
+    count, cloned, split, pruned = (int(x) for x in jax.device_get((plan.count, plan.cloned, plan.split,
+                                                                      plan.pruned)))
+    params, valid, state = _apply(params, state, plan, key, size=gaussian_bucket(count))
+    return params, valid, state, {"count": count, "cloned": cloned, "split": split, "pruned": pruned}
+
+
 def padded(data: GaussianSplatData, size: int) -> tuple[Gaussians, jax.Array]:
     """The set padded to ``size`` rows (transparent padding) and its valid mask (size,)."""
     pad = size - data.num
@@ -102,19 +148,6 @@ def padded(data: GaussianSplatData, size: int) -> tuple[Gaussians, jax.Array]:
     g = Gaussians(means=cat(data.means, 0.0), quats=cat(data.quats, 1.0), log_scales=cat(data.log_scales, PAD_LOG_SCALE),
                   opacity_logits=cat(data.opacity_logits, splat_fit.PAD_OPACITY_LOGIT), sh=cat(data.sh, 0.0))
     return g, jnp.asarray(np.arange(size) < data.num)
-
-
-def carry_state(state, source: np.ndarray, size: int):
-    """Adam moments of the rows ``source`` (−1: zeros), padded to ``size``."""
-    index = jnp.asarray(np.concatenate([source, np.full(size - len(source), -1)]))
-
-    def gather(x):
-        if jnp.ndim(x) == 0:
-            return x
-        picked = x[jnp.maximum(index, 0)]
-        return jnp.where((index >= 0).reshape((-1,) + (1,) * (x.ndim - 1)), picked, 0)
-
-    return jax.tree.map(gather, state)
 
 
 def reset_opacity(params: Gaussians, state: Any, ceiling: float) -> tuple[Gaussians, Any]:
@@ -134,4 +167,5 @@ def reset_opacity(params: Gaussians, state: Any, ceiling: float) -> tuple[Gaussi
 def unpadded(params: Gaussians, valid: jax.Array) -> GaussianSplatData:
     """The valid rows of a padded set (valid rows come first), on the host."""
     n = int(valid.sum())
-    return GaussianSplatData.from_kernel(jax.tree.map(lambda x: x[:n], params))
+    # whole arrays to the host, then sliced there: a device slice would compile a program per count
+    return GaussianSplatData.from_kernel(jax.tree.map(lambda x: np.asarray(x)[:n], params))

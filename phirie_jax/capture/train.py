@@ -44,7 +44,8 @@ from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig
 from kernels.sh import num_sh_coeffs, rgb_to_sh_dc
 from phirie_jax.capture.config import TrainConfig
-from phirie_jax.capture.densify import carry_state, densify_and_prune, padded, reset_opacity, unpadded
+from phirie_jax.capture.densify import densify_on_device, padded, reset_opacity, unpadded
+from phirie_jax.capture.programs import StepPrograms, like, with_rows
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_bytes
 from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
@@ -56,6 +57,7 @@ EXTENT_MARGIN = 1.1            # gsplat's scene scale: 1.1 × the largest camera
 RESET_CEILING = 2.0            # an opacity reset clamps opacities to this × min_opacity (gsplat)
 CHECKPOINT_VERSION = 1
 IN_FLIGHT = 2                  # steps dispatched before the oldest is checked (its host work overlaps the next)
+GROW_AHEAD = 0.75              # the next bucket's (capacity's) program is compiled once this much of one is used
 
 _STATIC = ("config", "dssim_weight", "exact_screen_gradient")
 _train_step = jax.jit(splat_fit.train_step, static_argnames=_STATIC)
@@ -211,8 +213,8 @@ def save_checkpoint(path: Path, params: Gaussians, valid, state, grad_sum, seen,
     n, size = int(valid.sum()), int(valid.shape[0])
 
     def host(x):  # a host copy of the valid rows: the device buffers may be donated to the next step
-        x = jnp.asarray(x)
-        return np.array(x[:n] if x.ndim and x.shape[0] == size else x)
+        x = np.array(x)  # whole, then sliced on the host (a device slice compiles a program per count)
+        return x[:n] if x.ndim and x.shape[0] == size else x
 
     arrays = {f"params.{k}": host(getattr(params, k)) for k in Gaussians.__dataclass_fields__}
     arrays.update({f"state.{i}": host(leaf) for i, leaf in enumerate(jax.tree.leaves(state))})
@@ -280,13 +282,23 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         params, valid, state, grad_sum, seen, raster, loop = load_checkpoint(Path(checkpoint), stamp, rng, raster)
         resumed_at = loop.step
     bg = jnp.asarray(background, jnp.float32)
-    step_fn = _train_step_donated if donate else _train_step
-    programs: set = set()
+    programs = StepPrograms(_train_step_donated if donate else _train_step, lambda capacity: {
+        "config": dataclasses.replace(raster, capacity=capacity), "dssim_weight": config.dssim_weight,
+        "exact_screen_gradient": config.exact_screen_gradient})
+    called: set = set()                 # program keys called so far
     compile_calls, step_times = [], []  # seconds of the calls that compiled a program; between checked steps
-    densify_s = 0.0                     # host time densifying (a device round trip of every Gaussian each)
+    densify_s = 0.0                     # time densifying (two programs and a count read back each)
     inflight: list[tuple] = []          # (outputs, view) dispatched, not checked yet
     t0 = last_checked = time.perf_counter()
     written: _Written | None = None   # the checkpoint being written
+    last_args: tuple = ()               # the arguments of the last step dispatched (their shapes)
+
+    def prepare(rows: int, capacity: int) -> None:
+        """Compile the step for these sizes in the background (``phirie_jax.capture.programs``)."""
+        params_, state_, lrs_, valid_, mask_, *view_, grad_sum_, seen_ = last_args
+        programs.prepare((rows, capacity), (with_rows(params_, rows), with_rows(state_, rows), like(lrs_),
+                                            with_rows(valid_, rows), like(mask_), *map(like, view_),
+                                            with_rows(grad_sum_, rows), with_rows(seen_, rows)))
 
     def densifies(s: int) -> bool:  # after the step numbered s (from 1)
         return config.densify_from <= s < config.densify_until and s % config.densify_interval == 0
@@ -312,43 +324,43 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                     loop.order = list(rng.permutation(views.count))
                 view = loop.order.pop(0)
                 key, t_call = (int(valid.shape[0]), raster.capacity), time.perf_counter()
-                out = step_fn(params, state, learning_rates(config, extent, ahead), valid, sh_mask(config, ahead),
-                              views.Ks[view], views.world_to_cameras[view], views.images[view], bg, grad_sum, seen,
-                              config=raster, dssim_weight=config.dssim_weight,
-                              exact_screen_gradient=config.exact_screen_gradient)
-                if key not in programs:
+                last_args = (params, state, learning_rates(config, extent, ahead), valid, sh_mask(config, ahead),
+                             views.Ks[view], views.world_to_cameras[view], views.images[view], bg, grad_sum, seen)
+                out = programs(key, *last_args)
+                if key not in called:
                     compile_calls.append(time.perf_counter() - t_call)
-                    programs.add(key)
+                    called.add(key)
                 params, state, _, grad_sum, seen = out[:5]
                 inflight.append((out, view))
                 continue
             out, view = inflight.pop(0)
-            if bool(out[6]):  # overflowed: the step changed nothing; grow and train its view again
-                if int(out[7]) > raster.capacity:
-                    raster = grown_capacity(raster, int(out[7]), "train at a lower resolution or with fewer Gaussians")
+            overflow, needed, loss = jax.device_get((out[6], out[7], out[2]))  # one transfer
+            if overflow:  # the step changed nothing; grow and train its view again
+                if int(needed) > raster.capacity:
+                    raster = grown_capacity(raster, int(needed), "train at a lower resolution or with fewer Gaussians")
                 loop.retries += 1
                 loop.order.insert(0, view)
                 continue
+            if int(needed) > GROW_AHEAD * raster.capacity:  # the next capacity's program, before it overflows
+                prepare(int(valid.shape[0]), 2 * raster.capacity)
             now = time.perf_counter()
             step_times.append(now - last_checked)
             last_checked = now
-            loop.losses.append(float(out[2]))
+            loop.losses.append(float(loss))
             loop.step += 1
             s = loop.step
             if densifies(s):
                 t_densify = time.perf_counter()
-                host = unpadded(params, valid)
-                n = host.num
-                grad = np.asarray(grad_sum[:n]) / np.maximum(np.asarray(seen[:n]), 1.0)
                 reset = config.opacity_reset_interval
-                host, source, counts = densify_and_prune(host, grad, extent, config, rng,
-                                                         prune_large=not reset or s > reset)
-                size = gaussian_bucket(host.num)
+                params, valid, state, counts = densify_on_device(
+                    params, valid, state, grad_sum, seen, extent, config, jax.random.key(rng.integers(2**31)),
+                    prune_large=not reset or s > reset)
+                size = int(valid.shape[0])
                 loop.buckets.add(size)
-                params, valid = padded(host, size)
-                state = carry_state(state, source, size)
                 grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
-                loop.events.append({"step": s, "gaussians": host.num, **counts})
+                loop.events.append({"step": s, "gaussians": int(counts.pop("count")), **counts})
+                if loop.events[-1]["gaussians"] > GROW_AHEAD * size:  # the next bucket's program
+                    prepare(2 * size, raster.capacity)
                 densify_s += time.perf_counter() - t_densify
             if resets(s):
                 params, state = reset_opacity(params, state, RESET_CEILING * config.min_opacity)
@@ -363,6 +375,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     finally:  # a checkpoint is whole on disk before anything else happens, a kill included
         if written is not None:
             written.wait()
+        programs.wait()
     wall_s = time.perf_counter() - t0
     # the median leaves out the few intervals that held a compilation (one per program)
     step_s = float(np.median(step_times)) if step_times else 0.0
@@ -372,11 +385,13 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         "steps": config.steps, "gaussians": gaussians.num, "initial_gaussians": init.num,
         "loss_first": loop.losses[0] if loop.losses else None, "loss_last": loop.losses[-1] if loop.losses else None,
         "densify": loop.events, "opacity_resets": loop.resets, "buckets": sorted(loop.buckets),
-        "capacity": raster.capacity, "capacity_retries": loop.retries, "programs": len(programs),
+        "capacity": raster.capacity, "capacity_retries": loop.retries, "programs": len(called),
+        "programs_compiled_ahead": sorted(programs.ready), "compile_ahead_s": round(programs.background_s, 3),
         "backend": jax.default_backend(), "device": str(jax.devices()[0]), "resumed_at": resumed_at,
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
         # calls that compiled, less a step each; ~0 when this process compiled the programs for an earlier run
-        "compile_s": round(compile_s, 3), "run_s": round(wall_s - compile_s, 3), "densify_s": round(densify_s, 3)}
+        "compile_s": round(compile_s, 3), "run_s": round(wall_s - compile_s, 3), "densify_s": round(densify_s, 3),
+        **({"compile_ahead_failed": programs.failed} if programs.failed else {})}
     return Trained(gaussians, raster, list(loop.losses), record)
 
 

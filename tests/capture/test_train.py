@@ -13,7 +13,7 @@ import pytest
 from kernels import splat_fit
 from kernels.raster import RasterConfig
 from phirie_jax.capture.config import TrainConfig
-from phirie_jax.capture.densify import densify_and_prune, padded, reset_opacity
+from phirie_jax.capture.densify import densify_and_prune, densify_on_device, padded, reset_opacity
 from phirie_jax.capture.train import Views, learning_rates, sh_mask, train_gaussians, views_psnr
 from phirie_jax.types import GaussianSplatData
 from tests.capture.toy import H, W, perturbed, toy_cameras, toy_images, toy_truth
@@ -139,15 +139,23 @@ def test_densification_counts_of_a_hand_checked_case():
         log_scales=np.log(np.float32([[0.005] * 3, [0.005] * 3, [0.05] * 3, [0.05] * 3, [0.005] * 3, [0.5] * 3])),
         opacity_logits=np.float32([2, 2, 2, 2, -9, 2]), sh=np.zeros((n, 1, 3), np.float32))
     grad = np.float32([3e-4, 1e-4, 5e-4, 1e-4, 0, 0])
-    early, _, early_counts = densify_and_prune(data, grad, 1.0, TrainConfig(), np.random.default_rng(0),
-                                               prune_large=False)
+    noise = np.random.default_rng(0).normal(size=(2, n, 3))
+    early, _, early_counts = densify_and_prune(data, grad, 1.0, TrainConfig(), noise, prune_large=False)
     assert early_counts == {"cloned": 1, "split": 1, "pruned": 1} and early.num == 7  # 6 + 1 + 2 − 1 − 1
-    later, source, counts = densify_and_prune(data, grad, 1.0, TrainConfig(), np.random.default_rng(0))
+    later, source, counts = densify_and_prune(data, grad, 1.0, TrainConfig(), noise)
     assert counts == {"cloned": 1, "split": 1, "pruned": 2} and later.num == 6
     assert sorted(source.tolist()) == [-1, -1, -1, 0, 1, 3]  # the clone and both children start afresh
     capped = dataclasses.replace(TrainConfig(), max_gaussians=7)  # room for one: the highest gradient (#2)
-    _, _, counts = densify_and_prune(data, grad, 1.0, capped, np.random.default_rng(0))
+    _, _, counts = densify_and_prune(data, grad, 1.0, capped, noise)
     assert counts["split"] == 1 and counts["cloned"] == 0
+    # the same case on the device, as training densifies
+    params, valid = padded(data, 256)
+    sums = jnp.asarray(np.concatenate([grad, np.zeros(250, np.float32)]))
+    for prune_large, want in ((False, {"count": 7, "cloned": 1, "split": 1, "pruned": 1}),
+                              (True, {"count": 6, "cloned": 1, "split": 1, "pruned": 2})):
+        *_, device_counts = densify_on_device(params, valid, splat_fit.init_state(params), sums, jnp.ones(256), 1.0,
+                                              TrainConfig(), jax.random.key(0), prune_large)
+        assert device_counts == want
 
 
 def test_opacity_reset_clamps_and_clears_the_moments():
