@@ -8,7 +8,11 @@ SH evaluated along the unit direction camera centre → mean.
 Conventions (docs/architecture.md "Contracts"): OpenCV camera axes, ``world_to_camera`` 4×4,
 pinhole ``K`` (skew allowed), pixel centres at (i + 0.5, j + 0.5) in K's coordinates.
 A tile t = (tx, ty) of size T covers the pixel centres in [T·tx, T·tx + T) × [T·ty, T·ty + T);
-a Gaussian touches every tile that its square [μ − r, μ + r]² overlaps.
+a Gaussian touches every tile that the bounding box of its ellipse at k σ overlaps, half-widths
+k √Σxx and k √Σyy, with k = min(3, √(2 ln(o / α_min))): beyond that ellipse its α is below
+α_min (skipped) or it is past 3σ. (A square of side 2 · 3σ_major, as 3DGS bins, holds more
+tiles for an elongated or faint Gaussian, and those extra tiles receive nothing above α_min
+but the 3σ cut's corners.)
 """
 
 from __future__ import annotations
@@ -103,16 +107,21 @@ def _project_one(mean, quat, log_scale, opacity_logit, sh, K, world_to_camera, c
     uv_ = jax.lax.stop_gradient(uv)
 
     opacity = jax.nn.sigmoid(opacity_logit)
-    alive = in_front & (jax.lax.stop_gradient(opacity) >= ALPHA_MIN) & jnp.isfinite(radius)
+    opacity_ = jax.lax.stop_gradient(opacity)
+    alive = in_front & (opacity_ >= ALPHA_MIN) & jnp.isfinite(radius)
+    # The tiles: the bounding box of the ellipse m ≤ k (m: Mahalanobis distance), half-widths
+    # k √Σxx and k √Σyy. Past m² = 2 ln(o / ALPHA_MIN) the compositor skips every pixel
+    # (o e^(−m²/2) < ALPHA_MIN), so k is that or SIGMA_EXTENT, the smaller.
+    k = jnp.minimum(SIGMA_EXTENT, jnp.sqrt(2.0 * jnp.log(jnp.maximum(opacity_ / ALPHA_MIN, 1.0))))
 
-    def tile_range(centre, n_tiles):
+    def tile_range(centre, half, n_tiles):
         # Clip before the int cast so far-away means cannot overflow int32.
-        lo = jnp.floor(jnp.clip((centre - radius) / tile_size, -1.0, n_tiles))
-        hi = jnp.floor(jnp.clip((centre + radius) / tile_size, -1.0, n_tiles))
+        lo = jnp.floor(jnp.clip((centre - half) / tile_size, -1.0, n_tiles))
+        hi = jnp.floor(jnp.clip((centre + half) / tile_size, -1.0, n_tiles))
         return jnp.maximum(lo, 0).astype(jnp.int32), jnp.minimum(hi, n_tiles - 1).astype(jnp.int32)
 
-    x0, x1 = tile_range(uv_[0], tiles_x)
-    y0, y1 = tile_range(uv_[1], tiles_y)
+    x0, x1 = tile_range(uv_[0], k * jnp.sqrt(a_), tiles_x)
+    y0, y1 = tile_range(uv_[1], k * jnp.sqrt(c_), tiles_y)
     touches = (x1 >= x0) & (y1 >= y0)
     visible = alive & touches
     rect = jnp.where(visible, jnp.stack([x0, y0, x1, y1]), jnp.array([0, 0, -1, -1], jnp.int32))

@@ -81,9 +81,9 @@ def reference_render(g: Gaussians, K, w2c, width, height, background, features,
                      near=0.01, tile=TILE):
     """Every Gaussian, every pixel, in per-pixel depth order, float64 NumPy.
 
-    Same rules as 3DGS: EWA with the clamped Jacobian, +0.3 px² dilation, 3σ radius from
-    the largest eigenvalue, tiles touched by the square [μ ± r], α = min(0.99, o G),
-    skip α < 1/255, stop before T < 1e-4.
+    Same rules as 3DGS: EWA with the clamped Jacobian, +0.3 px² dilation, α = min(0.99, o G),
+    skip α < 1/255, stop before T < 1e-4; a Gaussian reaches the tiles of the bounding box of
+    its ellipse at k = min(3, √(2 ln(255 o))) standard deviations.
     """
     means = np.asarray(g.means, np.float64)
     quats = np.asarray(g.quats, np.float64)
@@ -110,11 +110,12 @@ def reference_render(g: Gaussians, K, w2c, width, height, background, features,
         r3 = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
         cov3 = r3 @ np.diag(scales[i] ** 2) @ r3.T
         cov2 = jac @ rot @ cov3 @ rot.T @ jac.T + 0.3 * np.eye(2)
-        radius = 3.0 * np.sqrt(np.linalg.eigvalsh(cov2).max())
+        k = min(3.0, np.sqrt(2.0 * np.log(max(255.0 * opac[i], 1.0))))
+        half = k * np.sqrt(np.diag(cov2))
         uv = K[:2, :2] @ (p[:2] / p[2]) + K[:2, 2]
         d = means[i] - center
         color = np.maximum(sh_basis(d / np.linalg.norm(d), 3)[: sh.shape[1]] @ sh[i] + 0.5, 0.0)
-        rect = np.floor(np.concatenate([uv - radius, uv + radius]) / tile)
+        rect = np.floor(np.concatenate([uv - half, uv + half]) / tile)
         rows.append((p[2], uv, np.linalg.inv(cov2), color, rect))
 
     xs, ys = np.meshgrid(np.arange(width), np.arange(height))
