@@ -23,6 +23,10 @@ training view:
   training loop calls them (a host sync per step) against 50 dispatched without syncing;
 - the same step on the exact count (no padding) and at the tight capacity.
 
+``--loop N`` runs ``train_gaussians`` itself on the one view for N steps (no densification, every
+SH band on): its median step with 2, 3 and 4 steps in flight, and with the photo already on the
+device, against the parts above (where the loop's time goes beyond the step's own).
+
 ``--levers`` times the colour render and the loss gradient per Pallas setting (the backward's
 chunk and block orientation, warps). ``memory``: what XLA's compiled train step holds (its
 temporaries, arguments, outputs and the outputs aliased to donated arguments, MiB) and the
@@ -33,6 +37,7 @@ kernel of one step (``experiments.profiling``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -124,7 +129,30 @@ def _memory(fn, params, valid, mask, K, w2c, image, bg, lrs, raster: RasterConfi
     return out
 
 
-def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, levers: bool = False) -> dict:
+def _training_loop(data: GaussianSplatData, camera, image: np.ndarray, steps: int) -> dict:
+    """``train_gaussians`` on one view (module docstring, ``--loop``)."""
+    from phirie_jax.capture import train
+
+    config = TrainConfig(steps=steps, densify_from=steps + 1, opacity_reset_interval=0, checkpoint_interval=0,
+                         sh_band_interval=1)
+    on_host = train.Views.of([image], [camera])
+    on_device = dataclasses.replace(on_host, images=jnp.asarray(on_host.images))
+    default, out = train.IN_FLIGHT, {}
+    try:
+        for name, views, in_flight in (("in_flight_2", on_host, 2), ("in_flight_3", on_host, 3),
+                                       ("in_flight_4", on_host, 4), ("in_flight_2_photo_on_device", on_device, 2)):
+            train.IN_FLIGHT = in_flight
+            record = train.train_gaussians(data, views, 5.0, config, np.random.default_rng(0), donate=True).record
+            out[name] = {"step_ms_median": round(record["step_s_median"] * 1e3, 3),
+                         "run_ms_per_step": round(record["run_s"] / steps * 1e3, 3), "compile_s": record["compile_s"]}
+            print(f"profile_train_step: loop {name} {out[name]}", file=sys.stderr, flush=True)
+    finally:
+        train.IN_FLIGHT = default
+    return out
+
+
+def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, levers: bool = False,
+            loop: int = 0) -> dict:
     from phirie_jax.io.scene import load_scene
 
     scene = load_scene(scene_dir, gaussians=gaussians_path if gaussians_path and gaussians_path.suffix == ".ply"
@@ -229,6 +257,8 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
         per_step = run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 50, sync)
         parts[f"loop_50_{'synced' if sync else 'dispatched'}"] = {"ms": round(per_step * 1e3, 3)}
 
+    if loop:
+        result["training_loop"] = _training_loop(data, camera, np.asarray(image), loop)
     if levers:
         result["levers"] = _levers(params, valid, mask, K, w2c, bg, target, offset, loop_capacity, config,
                                    width, height, g_masked)
@@ -246,10 +276,12 @@ def main() -> None:
     parser.add_argument("--gaussians", type=Path)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--trace", type=Path)
+    parser.add_argument("--loop", type=int, default=0, metavar="N",
+                        help="also run the training loop itself for N steps on the view (several variants)")
     parser.add_argument("--levers", action="store_true", help="also time the render and the loss gradient per "
                         "Pallas setting (chunk, warps, prefetch) and with and without the depth channel")
     args = parser.parse_args()
-    result = profile(args.scene, args.gaussians, args.trace, args.levers)
+    result = profile(args.scene, args.gaussians, args.trace, args.levers, args.loop)
     text = json.dumps(result, indent=1)
     print(text)
     if args.out is not None:

@@ -143,7 +143,7 @@ def _header_line(draw, raw):
 
 def _ascii_row(draw, raw):
     lines, data = split(raw)
-    if b"ascii" not in lines[1]:
+    if len(lines) < 2 or b"ascii" not in lines[1]:  # an earlier mutation moved the format line
         return _overwrite(draw, raw)
     rows = data.split(b"\n")
     i = draw(st.integers(0, len(rows) - 1))
