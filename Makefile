@@ -14,11 +14,16 @@ TESTPKG := chromium
 demo: setup
 	$(PY) -m phirie_jax.cli demo --out out/demo
 
+# One XLA compilation cache for a test run, shared by the pytest workers and every process a test
+# starts (conversions on the command line, Ray workers): a program compiled in one is read by the
+# others. Made empty for each run and removed after it.
+TESTCACHE = cache=$$(mktemp -d) && JAX_COMPILATION_CACHE_DIR=$$cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0.5
+
 test: setup test-packages
-	$(PY) -m pytest -n auto --dist loadfile -q
+	$(TESTCACHE) $(PY) -m pytest -n auto --dist loadfile -q; status=$$?; rm -rf $$cache; exit $$status
 
 test-all: setup test-packages
-	$(PY) -m pytest -n auto --dist loadfile -q -m ''
+	$(TESTCACHE) $(PY) -m pytest -n auto --dist loadfile -q -m ''; status=$$?; rm -rf $$cache; exit $$status
 
 setup: system-packages $(STAMP)
 
