@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from kernels.composite import NUM_GEOMETRY, TileGrid, TileLists, composite, composite_scan
 from kernels.composite_pallas import PallasSettings, composite_pallas
 from kernels.gaussians import Gaussians
-from kernels.project import NEAR_PLANE, Projected, project_gaussians
+from kernels.project import ALPHA_MIN, NEAR_PLANE, Projected, project_gaussians
 from kernels.pytree import pytree_dataclass, static_field
 
 MAX_INTERSECTIONS = 1 << 30  # beyond this the int32 bookkeeping could overflow: always "overflow"
@@ -130,10 +130,41 @@ class RasterOutput:
         return jnp.where(self.alpha > 0, self.depth / jnp.maximum(self.alpha, DEPTH_EPS), 0.0)
 
 
+def tile_reached(means2d, conics, opacities, tx, ty, tile_size: int):
+    """Whether a Gaussian's α reaches ALPHA_MIN at some pixel centre of tile (tx, ty).
+
+    means2d (M, 2), conics (M, 3) (a, b, c), opacities (M,), tx (M,), ty (M,) int32: one
+    (Gaussian, tile) pair per row. α = o exp(−q/2) with q = a dx² + 2b dx dy + c dy² is at least
+    ALPHA_MIN where q ≤ 2 ln(o / ALPHA_MIN); the smallest q over the tile's rectangle of pixel
+    centres is 0 when the mean is inside it, else on one of its edges, where q is a parabola in
+    the free coordinate (its vertex clamped to the edge). Returns (M,) bool (a margin of 1e-3 in
+    q keeps every pair that rounding could make the compositor keep)."""
+    a, b, c = conics[:, 0], conics[:, 1], conics[:, 2]
+    lo_x = (tx * tile_size).astype(means2d.dtype) + 0.5 - means2d[:, 0]
+    lo_y = (ty * tile_size).astype(means2d.dtype) + 0.5 - means2d[:, 1]
+    hi_x, hi_y = lo_x + (tile_size - 1), lo_y + (tile_size - 1)
+
+    def along_y(dx):   # the smallest q on the edge at offset dx, dy in [lo_y, hi_y]
+        dy = jnp.clip(-b * dx / c, lo_y, hi_y)
+        return a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+
+    def along_x(dy):
+        dx = jnp.clip(-b * dy / a, lo_x, hi_x)
+        return a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+
+    inside = (lo_x <= 0.0) & (hi_x >= 0.0) & (lo_y <= 0.0) & (hi_y >= 0.0)
+    q = jnp.minimum(jnp.minimum(along_y(lo_x), along_y(hi_x)), jnp.minimum(along_x(lo_y), along_x(hi_y)))
+    limit = 2.0 * jnp.log(jnp.maximum(opacities, ALPHA_MIN) / ALPHA_MIN)
+    return inside | (q <= limit + 1e-3)
+
+
 def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
     """Depth-ordered per-tile lists.  Returns (TileLists, needed intersections () int32).
 
-    Slots past ``capacity`` are not stored; ``needed`` says how many there were.
+    Every tile of a Gaussian's rectangle takes a slot; slots past ``capacity`` are not
+    stored, and ``needed`` says how many there were. A slot whose tile the Gaussian's α never
+    reaches ALPHA_MIN in (``tile_reached``: the rectangle's corners, for an elongated or
+    faint Gaussian) is left out of the lists: it sorts after every tile's run.
     """
     n = proj.depths.shape[0]
     x0, y0, x1, y1 = (proj.rects[:, i] for i in range(4))
@@ -158,9 +189,12 @@ def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
     gid = order[rank]
     local = slot - starts[rank]  # index inside the Gaussian's rectangle
     width = jnp.maximum(span_x[gid], 1)
-    tile = (y0[gid] + local // width) * grid.tiles_x + x0[gid] + local % width
+    tx, ty = x0[gid] + local % width, y0[gid] + local // width
+    tile = ty * grid.tiles_x + tx
     nt = grid.num_tiles
-    tile = jnp.where((slot < needed) & ~too_many, tile, nt)  # sentinel sorts last
+    reached = tile_reached(jax.lax.stop_gradient(proj.means2d[gid]), jax.lax.stop_gradient(proj.conics[gid]),
+                           jax.lax.stop_gradient(proj.opacities[gid]), tx, ty, grid.tile_size)
+    tile = jnp.where((slot < needed) & ~too_many & reached, tile, nt)  # sentinel sorts last
     # Stable: entries of one tile keep the depth order they were expanded in.
     sorted_tile, gaussian_ids = jax.lax.sort((tile, gid), num_keys=1, is_stable=True)
     # Each tile's run: its last entry is where the next entry's tile differs.

@@ -58,18 +58,19 @@ def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height:
 
 
 def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, static_needed,
-                     moving: TileLists, moving_depths, moving_needed, offset: int) -> TileLists:
+                     moving: TileLists, moving_depths, offset: int) -> TileLists:
     """Merge two (tile, depth)-sorted lists into one; static first where depths are equal.
 
     static: lists of capacity Cs with static_depths (Cs,) sorted entry depths and
-    static_needed () int32; moving: lists of capacity Cm with moving_depths (Cm,) and
-    moving_needed () int32; ``offset`` is added to the moving Gaussian ids (their rows follow
+    static_needed () int32; moving: lists of capacity Cm with moving_depths (Cm,) (the entries
+    in its tiles' runs come first); ``offset`` is added to the moving Gaussian ids (their rows follow
     the static rows). Returns lists of capacity Cs + Cm.
     """
     cs = static.gaussian_ids.shape[0]
     cm = moving.gaussian_ids.shape[0]
     entry = jnp.arange(cm, dtype=jnp.int32)
-    valid = entry < jnp.minimum(moving_needed, cm)
+    # the entries in a tile's run (binning leaves out the tiles a Gaussian's α never reaches)
+    valid = entry < jnp.minimum(moving.tile_start[-1] + moving.tile_count[-1], cm)
     # Each moving entry's tile: the sorted entries' tile runs start at moving.tile_start.
     bounds = jnp.concatenate([moving.tile_start, jnp.full((1,), cm, jnp.int32)])
     tile = jnp.clip(jnp.searchsorted(bounds, entry, side="right").astype(jnp.int32) - 1,
@@ -121,7 +122,7 @@ def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camer
     depths = jnp.where(slot < needed, jax.lax.stop_gradient(proj.depths)[lists.gaussian_ids],
                        jnp.inf)
     ns = view.params.shape[0]
-    merged = merge_tile_lists(grid, view.lists, view.depths, view.needed, lists, depths, needed,
+    merged = merge_tile_lists(grid, view.lists, view.depths, view.needed, lists, depths,
                               ns)
     params = jnp.concatenate([view.params, composite_params(proj, features, config.depth)], axis=0)
     acc, trans, steps, too_long = composite_rows(grid, config, params, merged)

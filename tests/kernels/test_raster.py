@@ -346,3 +346,34 @@ def test_colour_only_render_equals_the_full_one(scene_and_reference):
     for key in ("rgb", "alpha", "features"):
         np.testing.assert_allclose(getattr(colour, key), getattr(full, key), atol=1e-6, err_msg=key)
     assert float(jnp.max(jnp.abs(full.depth))) > 0 and not np.any(np.asarray(colour.depth))
+
+
+def test_tile_reached_equals_checking_every_pixel_centre():
+    """``tile_reached`` against α evaluated at each of the tile's pixel centres (float64)."""
+    from kernels.project import ALPHA_MIN
+    from kernels.raster import tile_reached
+
+    rng = np.random.default_rng(4)
+    m, tile = 4000, 16
+    means = rng.uniform(-40, 72, size=(m, 2))
+    sigma = np.exp(rng.uniform(np.log(0.5), np.log(30), size=(m, 2)))
+    angle = rng.uniform(0, np.pi, m)
+    rot = np.stack([np.stack([np.cos(angle), -np.sin(angle)], -1), np.stack([np.sin(angle), np.cos(angle)], -1)], -2)
+    cov = rot @ (sigma[:, :, None] ** 2 * np.eye(2)) @ np.swapaxes(rot, 1, 2)
+    inv = np.linalg.inv(cov)
+    conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    opacity = rng.uniform(0.002, 1.0, m)
+    tx, ty = rng.integers(0, 2, m), rng.integers(0, 2, m)
+    got = np.asarray(tile_reached(jnp.asarray(means, jnp.float32), jnp.asarray(conics, jnp.float32),
+                                  jnp.asarray(opacity, jnp.float32), jnp.asarray(tx, jnp.int32),
+                                  jnp.asarray(ty, jnp.int32), tile))
+    local = np.arange(tile) + 0.5
+    px = tx[:, None, None] * tile + local[None, None, :] - means[:, 0, None, None]
+    py = ty[:, None, None] * tile + local[None, :, None] - means[:, 1, None, None]
+    q = conics[:, 0, None, None] * px ** 2 + 2 * conics[:, 1, None, None] * px * py + conics[:, 2, None, None] * py ** 2
+    alpha = opacity[:, None, None] * np.exp(-0.5 * q)
+    want = (alpha >= ALPHA_MIN).any(axis=(1, 2))
+    assert not np.any(want & ~got), "a tile the Gaussian reaches was dropped"
+    near_limit = np.abs(q.min(axis=(1, 2)) - 2 * np.log(opacity / ALPHA_MIN)) < 1e-2
+    assert np.array_equal(got[~near_limit], want[~near_limit])
+    assert 0.2 < want.mean() < 0.8  # both answers are exercised
