@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import jax
@@ -35,6 +36,7 @@ from kernels import densify as densify_kernels
 from kernels import splat_fit
 from kernels.densify import PAD_LOG_SCALE, SPLIT_SHRINK, DensifyLimits
 from kernels.gaussians import Gaussians
+from phirie_jax.capture.programs import Programs, direct, like, with_rows
 from phirie_jax.geometry import sigmoid
 from phirie_jax.render import gaussian_bucket
 from phirie_jax.types import GaussianSplatData
@@ -122,19 +124,35 @@ def _apply(params: Gaussians, state, plan, key, *, size: int):
     return densify_kernels.apply(params, state, plan, children_noise(key, params.num), size)
 
 
+def prepare_densify(programs: Programs, params: Any, state: Any, rows: int, rule: DensifyRule) -> None:
+    """Have ``programs`` compile, in the background, densification at ``rows`` rows: the plan, and
+    the scatter into the same bucket and into the next. params, state: a step's (any rows)."""
+    params, state = with_rows(params, rows), with_rows(state, rows)
+    vector = jax.ShapeDtypeStruct((rows,), jnp.float32)
+    limits = like(densify_limits(rule, 1.0, True))
+    valid = jax.ShapeDtypeStruct((rows,), jnp.bool_)
+    programs.prepare(("plan", rows), _plan, (params, valid, vector, vector, limits))
+    plan = jax.eval_shape(_plan, params, valid, vector, vector, limits)
+    for size in (rows, 2 * rows):
+        programs.prepare(("apply", rows, size), _apply, (params, state, plan, like(jax.random.key(0))), size=size)
+
+
 def densify_on_device(params: Gaussians, valid: jax.Array, state: Any, grad_sum: jax.Array, seen: jax.Array,
-                      extent: float, rule: DensifyRule, key, prune_large: bool = True
+                      extent: float, rule: DensifyRule, key, prune_large: bool = True, programs: Callable = direct
                       ) -> tuple[Gaussians, jax.Array, Any, dict]:
     """``densify_and_prune`` on the padded device set (noise from ``key``: ``children_noise``).
 
     params (S rows, valid first), valid (S,), state (the optimizer's, per-Gaussian leaves of S
     rows), grad_sum (S,) and seen (S,) the screen gradients summed since the last densification
     and the views each Gaussian was seen in. Returns the set padded to the bucket of its new
-    count, its valid mask, the state carried over and the counts (the new count, cloned, split, pruned)."""
-    plan = _plan(params, valid, grad_sum, seen, densify_limits(rule, extent, prune_large))
+    count, its valid mask, the state carried over and the counts (the new count, cloned, split,
+    pruned). programs: runs the two programs (``phirie_jax.capture.programs``: prepared ones)."""
+    plan = programs(("plan", params.num), _plan, params, valid, grad_sum, seen,
+                    densify_limits(rule, extent, prune_large))
     count, cloned, split, pruned = (int(x) for x in jax.device_get((plan.count, plan.cloned, plan.split,
                                                                       plan.pruned)))
-    params, valid, state = _apply(params, state, plan, key, size=gaussian_bucket(count))
+    size = gaussian_bucket(count)
+    params, valid, state = programs(("apply", params.num, size), _apply, params, state, plan, key, size=size)
     return params, valid, state, {"count": count, "cloned": cloned, "split": split, "pruned": pruned}
 
 

@@ -1,13 +1,13 @@
-"""The training step's programs, one per (Gaussian rows, tile-intersection capacity), compiled
-ahead of need on a background thread.
+"""The training's programs (the step per Gaussian rows and tile-intersection capacity, the
+densification per bucket), compiled ahead of need on a background thread.
 
 A training grows: densification moves the Gaussians to larger buckets and the tile
-intersections outgrow the buffer, and each new pair of sizes is a new program (a few seconds
-of XLA and Triton compilation each, with the device idle). The loop sees both coming: the
-count after a densification nears its bucket, a step's intersections near the capacity. It
-asks for the program of the next sizes then (``prepare``); a thread traces and compiles it
-from the argument shapes while the device keeps training, and the step that first needs it
-finds it ready. A program nobody prepared is compiled on the spot by the jit, as before.
+intersections outgrow the buffer, and each new size is a new program (a few seconds of XLA and
+Triton compilation for a step, with the device idle). The loop sees both coming: the count
+after a densification nears its bucket, a step's intersections near the capacity. It asks for
+the programs of the next sizes then (``prepare``); a thread traces and compiles them from the
+argument shapes while the device keeps training, and the call that first needs one finds it
+ready. A program nobody prepared is compiled on the spot by its jit, as before.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 
 import jax
 
-Key = tuple[int, int]  # (Gaussian rows, capacity)
+Key = tuple  # what tells programs apart: a name and sizes, e.g. ("step", rows, capacity)
 
 
 def with_rows(tree: Any, rows: int) -> Any:
@@ -37,21 +37,23 @@ def like(tree: Any) -> Any:
                         tree)
 
 
-class StepPrograms:
-    """``step`` (a jitted function) by key, from ``prepare``'s compilations where they are ready.
+class Programs:
+    """Jitted functions' programs by key, from ``prepare``'s compilations where they are ready.
+    Not ``enabled``: ``prepare`` does nothing (every program is compiled by its jit)."""
 
-    statics: the keyword arguments bound at compilation, as a function of the key's capacity."""
-
-    def __init__(self, step: Callable, statics: Callable[[int], dict]):
-        self.step, self.statics = step, statics
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
         self.ready: dict[Key, Any] = {}
         self.pending: dict[Key, threading.Thread] = {}
         self.background_s = 0.0   # compilation time spent on the thread
         self.failed: list[str] = []
         self._lock = threading.Lock()
 
-    def prepare(self, key: Key, shapes: tuple) -> None:
-        """Compile the program for ``key`` on a thread; shapes: the positional arguments' shapes."""
+    def prepare(self, key: Key, fn: Callable, shapes: tuple, **statics) -> None:
+        """Compile ``fn`` (a jitted function) for ``key`` on a thread: shapes, its positional
+        arguments' shapes; statics, its static keyword arguments."""
+        if not self.enabled:
+            return
         with self._lock:
             if key in self.ready or key in self.pending:
                 return
@@ -59,7 +61,7 @@ class StepPrograms:
             def compile_it():
                 t = time.perf_counter()
                 try:
-                    compiled = self.step.lower(*shapes, **self.statics(key[1])).compile()
+                    compiled = fn.lower(*shapes, **statics).compile()
                 except Exception as err:  # noqa: BLE001 (the jit compiles it when it is needed)
                     with self._lock:
                         self.failed.append(f"{key}: {type(err).__name__}: {err}"[:300])
@@ -74,9 +76,9 @@ class StepPrograms:
             self.pending[key] = thread
         thread.start()
 
-    def __call__(self, key: Key, *args):
-        """Run the step for ``key``: the prepared program once it is ready (waiting for one being
-        compiled), else the jit (which compiles on the spot the first time)."""
+    def __call__(self, key: Key, fn: Callable, *args, **statics):
+        """``fn(*args, **statics)``: by the prepared program once it is ready (waiting for one
+        being compiled), else by the jit (which compiles on the spot the first time)."""
         with self._lock:
             thread = self.pending.get(key)
         if thread is not None:
@@ -84,9 +86,15 @@ class StepPrograms:
         compiled = self.ready.get(key)
         if compiled is not None:
             return compiled(*args)
-        return self.step(*args, **self.statics(key[1]))
+        return fn(*args, **statics)
 
     def wait(self) -> None:
         """Join every compilation still running (before the process moves on)."""
         for thread in list(self.pending.values()):
             thread.join()
+
+
+def direct(key: Key, fn: Callable, *args, **statics):
+    """``Programs``' call without programs prepared: the jit itself."""
+    del key
+    return fn(*args, **statics)

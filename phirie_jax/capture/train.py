@@ -44,8 +44,8 @@ from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig
 from kernels.sh import num_sh_coeffs, rgb_to_sh_dc
 from phirie_jax.capture.config import TrainConfig
-from phirie_jax.capture.densify import densify_on_device, padded, reset_opacity, unpadded
-from phirie_jax.capture.programs import StepPrograms, like, with_rows
+from phirie_jax.capture.densify import densify_on_device, padded, prepare_densify, reset_opacity, unpadded
+from phirie_jax.capture.programs import Programs, like, with_rows
 from phirie_jax.errors import SceneInputError
 from phirie_jax.io.atomic import write_bytes
 from phirie_jax.render import gaussian_bucket, grown_capacity, next_power_of_two
@@ -262,13 +262,16 @@ def load_checkpoint(path: Path, stamp: str, rng, raster: RasterConfig):
 
 def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config: TrainConfig, rng,
                     background=(0.0, 0.0, 0.0), *, checkpoint: Path | None = None, resume: bool = False,
-                    on_step: Callable[[int, float, int], None] | None = None, donate: bool = False) -> Trained:
+                    on_step: Callable[[int, float, int], None] | None = None, donate: bool = False,
+                    compile_ahead: bool | None = None) -> Trained:
     """Train ``init`` on ``views`` (module docstring). extent: the scene scale the position's rate
     and the size thresholds are relative to; rng: a NumPy generator (view order, split offsets).
 
     checkpoint: where checkpoints go; with ``resume``, training continues from the one there.
     on_step(step, loss, gaussians) is called after every step (progress). donate: let each step
-    reuse its inputs' device memory (smaller peak; the inputs are consumed).
+    reuse its inputs' device memory (smaller peak; the inputs are consumed). compile_ahead:
+    compile the programs of the next sizes on a thread (``phirie_jax.capture.programs``); by
+    default where the device is not the host's CPU, whose cores would otherwise run the steps.
     """
     stamp = fingerprint(config, views, init, extent)
     size = gaussian_bucket(init.num)
@@ -282,9 +285,12 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         params, valid, state, grad_sum, seen, raster, loop = load_checkpoint(Path(checkpoint), stamp, rng, raster)
         resumed_at = loop.step
     bg = jnp.asarray(background, jnp.float32)
-    programs = StepPrograms(_train_step_donated if donate else _train_step, lambda capacity: {
-        "config": dataclasses.replace(raster, capacity=capacity), "dssim_weight": config.dssim_weight,
-        "exact_screen_gradient": config.exact_screen_gradient})
+    step_fn = _train_step_donated if donate else _train_step
+    programs = Programs(enabled=jax.default_backend() != "cpu" if compile_ahead is None else compile_ahead)
+
+    def statics(capacity: int) -> dict:
+        return {"config": dataclasses.replace(raster, capacity=capacity), "dssim_weight": config.dssim_weight,
+                "exact_screen_gradient": config.exact_screen_gradient}
     called: set = set()                 # program keys called so far
     compile_calls, step_times = [], []  # seconds of the calls that compiled a program; between checked steps
     densify_s = 0.0                     # time densifying (two programs and a count read back each)
@@ -294,11 +300,14 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     last_args: tuple = ()               # the arguments of the last step dispatched (their shapes)
 
     def prepare(rows: int, capacity: int) -> None:
-        """Compile the step for these sizes in the background (``phirie_jax.capture.programs``)."""
+        """Compile the step for these sizes, and densification at these rows, in the background
+        (``phirie_jax.capture.programs``)."""
         params_, state_, lrs_, valid_, mask_, *view_, grad_sum_, seen_ = last_args
-        programs.prepare((rows, capacity), (with_rows(params_, rows), with_rows(state_, rows), like(lrs_),
-                                            with_rows(valid_, rows), like(mask_), *map(like, view_),
-                                            with_rows(grad_sum_, rows), with_rows(seen_, rows)))
+        programs.prepare(("step", rows, capacity), step_fn, (
+            with_rows(params_, rows), with_rows(state_, rows), like(lrs_), with_rows(valid_, rows), like(mask_),
+            *map(like, view_), with_rows(grad_sum_, rows), with_rows(seen_, rows)), **statics(capacity))
+        if config.densify_from < config.densify_until:
+            prepare_densify(programs, params_, state_, rows, config)
 
     def densifies(s: int) -> bool:  # after the step numbered s (from 1)
         return config.densify_from <= s < config.densify_until and s % config.densify_interval == 0
@@ -323,10 +332,12 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 if not loop.order:
                     loop.order = list(rng.permutation(views.count))
                 view = loop.order.pop(0)
-                key, t_call = (int(valid.shape[0]), raster.capacity), time.perf_counter()
+                key, t_call = ("step", int(valid.shape[0]), raster.capacity), time.perf_counter()
                 last_args = (params, state, learning_rates(config, extent, ahead), valid, sh_mask(config, ahead),
                              views.Ks[view], views.world_to_cameras[view], views.images[view], bg, grad_sum, seen)
-                out = programs(key, *last_args)
+                out = programs(key, step_fn, *last_args, **statics(raster.capacity))
+                if len(called) == 0 and config.densify_from < config.densify_until:  # densification at this size
+                    prepare_densify(programs, params, state, int(valid.shape[0]), config)
                 if key not in called:
                     compile_calls.append(time.perf_counter() - t_call)
                     called.add(key)
@@ -354,7 +365,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 reset = config.opacity_reset_interval
                 params, valid, state, counts = densify_on_device(
                     params, valid, state, grad_sum, seen, extent, config, jax.random.key(rng.integers(2**31)),
-                    prune_large=not reset or s > reset)
+                    prune_large=not reset or s > reset, programs=programs)
                 size = int(valid.shape[0])
                 loop.buckets.add(size)
                 grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
@@ -386,7 +397,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         "loss_first": loop.losses[0] if loop.losses else None, "loss_last": loop.losses[-1] if loop.losses else None,
         "densify": loop.events, "opacity_resets": loop.resets, "buckets": sorted(loop.buckets),
         "capacity": raster.capacity, "capacity_retries": loop.retries, "programs": len(called),
-        "programs_compiled_ahead": sorted(programs.ready), "compile_ahead_s": round(programs.background_s, 3),
+        "programs_compiled_ahead": sorted(programs.ready, key=str), "compile_ahead_s": round(programs.background_s, 3),
         "backend": jax.default_backend(), "device": str(jax.devices()[0]), "resumed_at": resumed_at,
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
         # calls that compiled, less a step each; ~0 when this process compiled the programs for an earlier run

@@ -82,8 +82,9 @@ def test_killed_training_resumes_to_the_same_gaussians(toy, tmp_path):
         _train(toy, checkpoint=checkpoint, on_step=kill_at_15, config=TOY_RESET)
     assert checkpoint.is_file()  # written after step 10, its densification included
     resumed = _train(toy, checkpoint=checkpoint, resume=True, config=TOY_RESET)
-    whole = _train(toy, config=TOY_RESET)
+    whole = _train(toy, config=TOY_RESET, compile_ahead=True)  # the programs compiled on a thread: the same result
     assert resumed.record["resumed_at"] == 10 and whole.record["opacity_resets"] == [20]
+    assert whole.record["programs_compiled_ahead"] and not resumed.record["programs_compiled_ahead"]
     for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(resumed.gaussians, field), getattr(whole.gaussians, field), field)
     assert resumed.losses == whole.losses and resumed.record["densify"] == whole.record["densify"]
