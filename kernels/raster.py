@@ -2,12 +2,14 @@
 
 Pipeline for one camera (``rasterize``), all static shapes:
 
-1. ``project_gaussians``: EWA projection, 3σ radius, tile rectangle, SH colour.
+1. ``project_gaussians``: EWA projection, 3σ radius, tile rectangle (the bounding box of
+   the ellipse the Gaussian's α can reach 1/255 in, within 3σ), SH colour.
 2. ``bin_gaussians``: sort visible Gaussians by view depth, expand each into its
    tile intersections in that order (into a buffer of ``capacity`` slots; each slot
-   finds its Gaussian by a running max, O(C)), then stably sort the slots by tile
-   id. Each tile's list is thus depth-ordered; its range is found by searching the
-   sorted ids. Non-differentiable bookkeeping.
+   finds its Gaussian by a scatter of marks and a cumulative sum), leave out the tiles
+   of the rectangle its α never reaches 1/255 in (``tile_reached``), then stably sort
+   the slots by tile id. Each tile's list is thus depth-ordered; its range is where the
+   sorted ids change. Non-differentiable bookkeeping.
 3. Compositing, front to back per tile with early exit and a recompute-based custom VJP:
    on a GPU the Pallas kernels of ``kernels.composite_pallas`` (one program per tile);
    elsewhere, and as their reference, the pure-JAX work queue of ``kernels.composite``
