@@ -127,6 +127,8 @@ def _apply(params: Gaussians, state, plan, key, *, size: int):
 def prepare_densify(programs: Programs, params: Any, state: Any, rows: int, rule: DensifyRule) -> None:
     """Have ``programs`` compile, in the background, densification at ``rows`` rows: the plan, and
     the scatter into the same bucket and into the next. params, state: a step's (any rows)."""
+    if not programs.enabled:  # nothing to trace the shapes for
+        return
     params, state = with_rows(params, rows), with_rows(state, rows)
     vector = jax.ShapeDtypeStruct((rows,), jnp.float32)
     limits = like(densify_limits(rule, 1.0, True))
