@@ -57,14 +57,14 @@ def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height:
                       jnp.sum(proj.visible, dtype=jnp.int32))
 
 
-def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, static_needed,
-                     moving: TileLists, moving_depths, offset: int) -> TileLists:
+def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: TileLists, moving_depths,
+                     offset: int) -> TileLists:
     """Merge two (tile, depth)-sorted lists into one; static first where depths are equal.
 
-    static: lists of capacity Cs with static_depths (Cs,) sorted entry depths and
-    static_needed () int32; moving: lists of capacity Cm with moving_depths (Cm,) (the entries
-    in its tiles' runs come first); ``offset`` is added to the moving Gaussian ids (their rows follow
-    the static rows). Returns lists of capacity Cs + Cm.
+    static: lists of capacity Cs with static_depths (Cs,) sorted entry depths; moving: lists of
+    capacity Cm with moving_depths (Cm,) (the entries in its tiles' runs come first); ``offset``
+    is added to the moving Gaussian ids (their rows follow the static rows). Returns lists of
+    capacity Cs + Cm.
     """
     cs = static.gaussian_ids.shape[0]
     cm = moving.gaussian_ids.shape[0]
@@ -122,8 +122,7 @@ def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camer
     depths = jnp.where(slot < needed, jax.lax.stop_gradient(proj.depths)[lists.gaussian_ids],
                        jnp.inf)
     ns = view.params.shape[0]
-    merged = merge_tile_lists(grid, view.lists, view.depths, view.needed, lists, depths,
-                              ns)
+    merged = merge_tile_lists(grid, view.lists, view.depths, lists, depths, ns)
     params = jnp.concatenate([view.params, composite_params(proj, features, config.depth)], axis=0)
     acc, trans, steps, too_long = composite_rows(grid, config, params, merged)
     rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background, config.depth)

@@ -298,6 +298,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     t0 = last_checked = time.perf_counter()
     written: _Written | None = None   # the checkpoint being written
     last_args: tuple = ()               # the arguments of the last step dispatched (their shapes)
+    densifying = config.densify_from < config.densify_until
 
     def prepare(rows: int, capacity: int) -> None:
         """Compile the step for these sizes, and densification at these rows, in the background
@@ -306,7 +307,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         programs.prepare(("step", rows, capacity), step_fn, (
             with_rows(params_, rows), with_rows(state_, rows), like(lrs_), with_rows(valid_, rows), like(mask_),
             *map(like, view_), with_rows(grad_sum_, rows), with_rows(seen_, rows)), **statics(capacity))
-        if config.densify_from < config.densify_until:
+        if densifying:
             prepare_densify(programs, params_, state_, rows, config)
 
     def densifies(s: int) -> bool:  # after the step numbered s (from 1)
@@ -323,6 +324,8 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         """Does the step numbered s end with host work on the parameters?"""
         return densifies(s) or resets(s) or saves(s)
 
+    if densifying:  # densification at the starting size, compiled while the first step compiles
+        prepare_densify(programs, params, state, int(valid.shape[0]), config)
     try:
         while loop.step < config.steps or inflight:
             ahead = loop.step + len(inflight)  # steps done once those in flight succeed
@@ -336,8 +339,6 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 last_args = (params, state, learning_rates(config, extent, ahead), valid, sh_mask(config, ahead),
                              views.Ks[view], views.world_to_cameras[view], views.images[view], bg, grad_sum, seen)
                 out = programs(key, step_fn, *last_args, **statics(raster.capacity))
-                if len(called) == 0 and config.densify_from < config.densify_until:  # densification at this size
-                    prepare_densify(programs, params, state, int(valid.shape[0]), config)
                 if key not in called:
                     compile_calls.append(time.perf_counter() - t_call)
                     called.add(key)
