@@ -19,6 +19,7 @@ import tyro
 
 from phirie_jax.capture.command import capture
 from phirie_jax.cluster import ScenesFailed
+from phirie_jax.compile_cache import use_compile_cache
 from phirie_jax.construct.physics.config import PhysicsConfig
 from phirie_jax.errors import ConfigValueError, OptionError, SceneInputError, StageError
 from phirie_jax.frame.config import FrameConfig
@@ -714,6 +715,7 @@ def main(argv: list[str] | None = None) -> int:
     if (sys.argv[1:] if argv is None else argv)[:1] in (["--version"], ["-V"]):
         print(f"phirie {version()}")
         return 0
+    use_compile_cache()
     try:
         with deferred_checks():
             tyro.extras.subcommand_cli_from_dict(

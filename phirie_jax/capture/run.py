@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phirie_jax.capture.config import CaptureConfig
+from phirie_jax.capture.config import CaptureConfig, TrainConfig
 from phirie_jax.capture.frames import Frames, prepare_frames
 from phirie_jax.capture.scene import CAPTURE_RECORD, held_out, training_views, write_record, write_scene
 from phirie_jax.capture.sfm import load_sfm, run_sfm
@@ -142,7 +142,8 @@ def _stages(source: Path, out: Path, config: CaptureConfig, trainer: str, work: 
         ours = score_held_out(gaussians, cameras, images, test, config.train.background)
         training["held_out_psnr_phirie_renderer"] = ours and ours["held_out_psnr"]
     else:
-        gaussians, training = _train_jax(cameras, images, train, test, sfm, config, work, resume)
+        gaussians, training = train_with_jax(cameras, images, train, test, sfm.points, sfm.colours, config.train,
+                                             work / "checkpoint.npz", resume)
     timings["train_s"] = round(time.perf_counter() - t, 3)
 
     t = time.perf_counter()
@@ -162,9 +163,11 @@ def _stages(source: Path, out: Path, config: CaptureConfig, trainer: str, work: 
     return record
 
 
-def _train_jax(cameras, images, train: list[int], test: list[int], sfm, config: CaptureConfig, work: Path,
-               resume: bool):
-    """Train with the project's renderer; returns the Gaussians and the training record."""
+def train_with_jax(cameras, images, train: list[int], test: list[int], points, colours, tc: TrainConfig,
+                   checkpoint: Path | None = None, resume: bool = False):
+    """Train with the project's renderer from the SfM points (P, 3) and colours (P, 3) uint8, on
+    the views ``train`` of cameras and images, scoring ``test``; checkpoints to ``checkpoint``.
+    Returns the Gaussians and the training record (``train_with_gsplat``'s counterpart)."""
     from phirie_jax.capture.train import (
         Views,
         camera_extent,
@@ -174,10 +177,9 @@ def _train_jax(cameras, images, train: list[int], test: list[int], sfm, config: 
         views_psnr,
     )
 
-    tc = config.train
     rng = np.random.default_rng(tc.seed)
     extent = camera_extent(cameras)
-    init = init_from_points(sfm.points, sfm.colours.astype(np.float64) / 255.0, tc, rng)
+    init = init_from_points(points, np.asarray(colours, np.float64) / 255.0, tc, rng)
     views = Views.of([images[i] for i in train], [cameras[i] for i in train])
     with task(f"training {tc.steps} steps on {len(train)} views", tc.steps) as advance:
         shown = [0]
@@ -188,7 +190,7 @@ def _train_jax(cameras, images, train: list[int], test: list[int], sfm, config: 
             if step % 100 == 0 or step == tc.steps:
                 advance.update(f"training: step {step}/{tc.steps}, loss {loss:.4f}, {count:,} Gaussians")
 
-        trained = train_gaussians(init, views, extent, tc, rng, tc.background, checkpoint=work / "checkpoint.npz",
+        trained = train_gaussians(init, views, extent, tc, rng, tc.background, checkpoint=checkpoint,
                                   resume=resume, on_step=on_step, donate=True)
     peak = peak_device_memory_mb()
     with task("scoring the held-out views"):
@@ -197,7 +199,7 @@ def _train_jax(cameras, images, train: list[int], test: list[int], sfm, config: 
     record = {**trained.record, "extent": round(extent, 6), "views_trained": len(train),
               "held_out": [cameras[i].name for i in test], **(test_psnr or {"held_out_psnr": None}),
               "train_psnr": round(float(np.mean(train_psnr)), 3), "peak_gpu_mb": peak,
-              "config": dataclasses.asdict(config.train)}
+              "config": dataclasses.asdict(tc)}
     return trained.gaussians, record
 
 

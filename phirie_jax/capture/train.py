@@ -294,6 +294,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     called: set = set()                 # program keys called so far
     compile_calls, step_times = [], []  # seconds of the calls that compiled a program; between checked steps
     densify_s = 0.0                     # time densifying (two programs and a count read back each)
+    dispatch_s = wait_s = 0.0           # host time dispatching steps; waiting for a step's results
     inflight: list[tuple] = []          # (outputs, view) dispatched, not checked yet
     t0 = last_checked = time.perf_counter()
     written: _Written | None = None   # the checkpoint being written
@@ -342,11 +343,15 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 if key not in called:
                     compile_calls.append(time.perf_counter() - t_call)
                     called.add(key)
+                else:
+                    dispatch_s += time.perf_counter() - t_call
                 params, state, _, grad_sum, seen = out[:5]
                 inflight.append((out, view))
                 continue
             out, view = inflight.pop(0)
+            t_wait = time.perf_counter()
             overflow, needed, loss = jax.device_get((out[6], out[7], out[2]))  # one transfer
+            wait_s += time.perf_counter() - t_wait
             if overflow:  # the step changed nothing; grow and train its view again
                 if int(needed) > raster.capacity:
                     raster = grown_capacity(raster, int(needed), "train at a lower resolution or with fewer Gaussians")
@@ -403,8 +408,23 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
         # calls that compiled, less a step each; ~0 when this process compiled the programs for an earlier run
         "compile_s": round(compile_s, 3), "run_s": round(wall_s - compile_s, 3), "densify_s": round(densify_s, 3),
+        "dispatch_s": round(dispatch_s, 3), "wait_s": round(wait_s, 3), **step_spread(step_times),
         **({"compile_ahead_failed": programs.failed} if programs.failed else {})}
     return Trained(gaussians, raster, list(loop.losses), record)
+
+
+def step_spread(step_times: list[float]) -> dict:
+    """How the intervals between checked steps spread: quantiles, the mean of each tenth of the
+    run, and the seconds spent above twice the median (compilations, host work, stalls)."""
+    if not step_times:
+        return {}
+    t = np.asarray(step_times)
+    median = float(np.median(t))
+    tenths = [float(part.mean()) for part in np.array_split(t, min(10, len(t)))]
+    return {"step_s_mean": round(float(t.mean()), 5), "step_s_quantiles": {
+                q: round(float(np.quantile(t, float(q))), 5) for q in ("0.1", "0.5", "0.9", "0.99")},
+            "step_s_by_tenth": [round(x, 5) for x in tenths],
+            "slow_steps": int(np.sum(t > 2 * median)), "slow_steps_s": round(float(np.sum(t[t > 2 * median])), 3)}
 
 
 def views_psnr(data: GaussianSplatData, views: Views, background, raster: RasterConfig, clip: bool = False

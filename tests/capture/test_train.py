@@ -14,7 +14,7 @@ from kernels import splat_fit
 from kernels.raster import RasterConfig
 from phirie_jax.capture.config import TrainConfig
 from phirie_jax.capture.densify import densify_and_prune, densify_on_device, padded, reset_opacity
-from phirie_jax.capture.train import Views, learning_rates, sh_mask, train_gaussians, views_psnr
+from phirie_jax.capture.train import Views, learning_rates, sh_mask, step_spread, train_gaussians, views_psnr
 from phirie_jax.types import GaussianSplatData
 from tests.capture.toy import H, W, perturbed, toy_cameras, toy_images, toy_truth
 
@@ -171,3 +171,13 @@ def test_opacity_reset_clamps_and_clears_the_moments():
                                rtol=1e-5)
     assert not np.asarray(adam.mu.opacity_logits).any() and not np.asarray(adam.nu.opacity_logits).any()
     assert np.asarray(adam.mu.means).all()  # the other moments are kept
+
+
+def test_step_spread_names_the_slow_intervals():
+    times = [0.01] * 95 + [0.5, 0.04, 0.02, 0.019, 0.03]   # a compilation, host stalls, steps at 2× the median
+    spread = step_spread(times)
+    assert spread["step_s_quantiles"]["0.5"] == 0.01
+    assert spread["slow_steps"] == 3 and spread["slow_steps_s"] == pytest.approx(0.57)
+    assert len(spread["step_s_by_tenth"]) == 10 and spread["step_s_by_tenth"][0] == 0.01
+    assert spread["step_s_mean"] == pytest.approx(np.mean(times), abs=1e-5)
+    assert step_spread([]) == {}
