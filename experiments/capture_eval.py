@@ -115,13 +115,35 @@ def run_ours_warm(args) -> dict:
     from phirie_jax.progress import PlainDisplay, showing
 
     cameras, images, points, config, train, test = _captured(args)
+    profiler = None
+    if args.profile_host:
+        import cProfile
+
+        profiler = cProfile.Profile()
     t0 = time.perf_counter()
     with showing(PlainDisplay(prefix="capture_eval:   ")):
+        if profiler is not None:
+            profiler.enable()
         _, record = train_with_jax(cameras, images, train, test, points.xyz, points.rgb, config)
+        if profiler is not None:
+            profiler.disable()
     train_s = time.perf_counter() - t0
+    host = _host_profile(profiler) if profiler is not None else None
     _say(f"ours again, compiled programs read from the cache: held-out PSNR {record['held_out_psnr']} dB, "
          f"train {record['wall_s']:.1f} s (compile {record['compile_s']:.1f} s), peak GPU {record['peak_gpu_mb']} MiB")
-    return {"train_s": round(train_s, 3), "training": {k: v for k, v in record.items() if k != "config"}}
+    return {"train_s": round(train_s, 3), "training": {k: v for k, v in record.items() if k != "config"},
+            **({"host_profile": host} if host else {})}
+
+
+def _host_profile(profiler, rows: int = 40) -> dict:
+    """The functions the host spent the most time in (cProfile: own time and with callees)."""
+    import pstats
+
+    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive, own, cumulative, callers)
+    named = [(f"{Path(k[0]).name}:{k[1]}:{k[2]}", v[1], v[2], v[3]) for k, v in stats.items()]
+    return {order: [{"function": f, "calls": c, "own_s": round(own, 3), "with_callees_s": round(cum, 3)}
+                    for f, c, own, cum in sorted(named, key=lambda r: -r[key])[:rows]]
+            for order, key in (("by_own", 2), ("by_cumulative", 3))}
 
 
 def run_gsplat(args) -> dict:
@@ -232,6 +254,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--reset-every", type=int, default=3000,
                         help="ours' opacity reset interval (0: never, as gsplat 1.5.3 in effect)")
     parser.add_argument("--out", type=Path, default=None, help="write the merged JSON here")
+    parser.add_argument("--profile-host", action="store_true",
+                        help="ours-warm: profile the host's Python (cProfile) and record its top functions")
     args = parser.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     from experiments.report import emit

@@ -171,13 +171,8 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
     loop_capacity = max(MIN_CAPACITY, next_power_of_two(CAPACITY_PER_GAUSSIAN * size))
     grid = TileGrid(width, height, 16)
 
-    @jax.jit
-    def needed_of(p):
-        g = splat_fit.masked_sh(p, valid, mask)
-        proj = project_gaussians(g, K, w2c, width=width, height=height)
-        return bin_gaussians(proj, grid, 1 << 10)[1]
-
-    needed = int(needed_of(params))
+    needed = int(splat_fit.views_intersections(params, valid, K[None], w2c[None], width=width, height=height,
+                                               config=RasterConfig())[0])
     while loop_capacity < needed:  # the loop grows its buffer the same way on overflow
         loop_capacity *= 2
     tight = next_power_of_two(needed)

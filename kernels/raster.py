@@ -160,6 +160,30 @@ def tile_reached(means2d, conics, opacities, tx, ty, tile_size: int):
     return inside | (q <= limit + 1e-3)
 
 
+def _rect_tiles(rects):
+    """rects (N, 4) int32 inclusive tile rectangles → span in x (N,) and tile count (N,) int32
+    (0 for an empty rectangle)."""
+    x0, y0, x1, y1 = (rects[:, i] for i in range(4))
+    span_x = jnp.maximum(x1 - x0 + 1, 0)
+    return span_x, span_x * jnp.maximum(y1 - y0 + 1, 0)
+
+
+def _too_many(counts):
+    """Could the int32 sum of counts (N,) wrap? (a float sum tells, for absurd scenes) → () bool."""
+    return jnp.sum(counts.astype(jnp.float32)) > MAX_INTERSECTIONS
+
+
+def intersections_needed(gaussians: Gaussians, K, world_to_camera, *, width: int, height: int,
+                         config: RasterConfig = RasterConfig()):
+    """The buffer slots (tile intersections) ``rasterize`` needs for this view: the
+    ``num_intersections`` it would report, from the projection alone (no binning, no
+    compositing). K (3, 3), world_to_camera (4, 4) → () int32."""
+    proj = project_gaussians(gaussians, K, world_to_camera, width=width, height=height,
+                             tile_size=config.tile_size, near=config.near)
+    _, counts = _rect_tiles(proj.rects)
+    return jnp.where(_too_many(counts), jnp.iinfo(jnp.int32).max, jnp.sum(counts, dtype=jnp.int32))
+
+
 def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
     """Depth-ordered per-tile lists.  Returns (TileLists, needed intersections () int32).
 
@@ -169,15 +193,13 @@ def bin_gaussians(proj: Projected, grid: TileGrid, capacity: int):
     faint Gaussian) is left out of the lists: it sorts after every tile's run.
     """
     n = proj.depths.shape[0]
-    x0, y0, x1, y1 = (proj.rects[:, i] for i in range(4))
-    span_x = jnp.maximum(x1 - x0 + 1, 0)
-    counts = span_x * jnp.maximum(y1 - y0 + 1, 0)  # (N,) int32, 0 for culled
+    x0, y0 = proj.rects[:, 0], proj.rects[:, 1]
+    span_x, counts = _rect_tiles(proj.rects)
     depth_key = jnp.where(counts > 0, jax.lax.stop_gradient(proj.depths), jnp.inf)
     _, order = jax.lax.sort_key_val(depth_key, jnp.arange(n, dtype=jnp.int32))  # stable
     counts_sorted = counts[order]
     ends = jnp.cumsum(counts_sorted, dtype=jnp.int32)  # (N,) exclusive end of each run
-    # The int32 sum could wrap for absurd scenes; a float sum tells when that is possible.
-    too_many = jnp.sum(counts.astype(jnp.float32)) > MAX_INTERSECTIONS
+    too_many = _too_many(counts)
     needed = jnp.where(too_many, jnp.iinfo(jnp.int32).max, ends[-1])
 
     # Owner of each slot: a 1 at the first slot of every visible Gaussian, whose running

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from kernels.gaussians import Gaussians
 from kernels.image_metrics import ssim
-from kernels.raster import RasterConfig, rasterize
+from kernels.raster import RasterConfig, intersections_needed, rasterize
 
 PAD_OPACITY_LOGIT = -1e4  # padding Gaussians: opacity 0, culled by the projection
 
@@ -143,6 +143,15 @@ def train_step(params: Gaussians, opt_state: Any, lrs: Gaussians, valid: jax.Arr
     params, opt_state, grad_sum, seen = kept((new_params, new_state, new_sum, new_seen),
                                              (params, opt_state, grad_sum, seen))
     return params, opt_state, loss, grad_sum, seen, radii, overflow, needed
+
+
+def views_intersections(params: Gaussians, valid: jax.Array, Ks: jax.Array, world_to_cameras: jax.Array, *,
+                        width: int, height: int, config: RasterConfig) -> jax.Array:
+    """(V,) int32 tile intersections a step on each view needs (the buffer capacity it must
+    have), from the projection alone. valid (N,); Ks (V, 3, 3); world_to_cameras (V, 4, 4)."""
+    g = masked_sh(params, valid, jnp.ones((params.sh.shape[1], 1), params.sh.dtype))
+    return jax.lax.map(lambda view: intersections_needed(g, view[0], view[1], width=width, height=height,
+                                                         config=config), (Ks, world_to_cameras))
 
 
 def render_views(params: Gaussians, valid: jax.Array, Ks: jax.Array, world_to_cameras: jax.Array,

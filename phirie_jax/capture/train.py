@@ -30,6 +30,7 @@ import hashlib
 import io
 import json
 import math
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -57,11 +58,15 @@ EXTENT_MARGIN = 1.1            # gsplat's scene scale: 1.1 × the largest camera
 RESET_CEILING = 2.0            # an opacity reset clamps opacities to this × min_opacity (gsplat)
 CHECKPOINT_VERSION = 1
 IN_FLIGHT = 2                  # steps dispatched before the oldest is checked (its host work overlaps the next)
+# While a thread traces programs ahead (pure Python, holding the GIL), the loop waits for the GIL
+# each time it gets it back from a blocking call: up to Python's switch interval (5 ms) each time.
+SWITCH_INTERVAL_S = 2e-4
 GROW_AHEAD = 0.75              # the next bucket's (capacity's) program is compiled once this much of one is used
 
 _STATIC = ("config", "dssim_weight", "exact_screen_gradient")
 _train_step = jax.jit(splat_fit.train_step, static_argnames=_STATIC)
 _train_step_donated = jax.jit(splat_fit.train_step, static_argnames=_STATIC, donate_argnums=(0, 1, 9, 10))
+_views_intersections = jax.jit(splat_fit.views_intersections, static_argnames=("width", "height", "config"))
 _render_view = jax.jit(lambda params, valid, K, w2c, bg, *, width, height, config: splat_fit.render_views(
     params, valid, K[None], w2c[None], bg, width=width, height=height, config=config), static_argnames=(
     "width", "height", "config"))
@@ -151,6 +156,17 @@ def sh_mask(config: TrainConfig, step: int) -> jax.Array:
     """(K, 1) 1 for the coefficients of the bands on at ``step``."""
     degree = min(config.sh_degree, step // config.sh_band_interval)
     return jnp.asarray((np.arange(num_sh_coeffs(config.sh_degree)) < num_sh_coeffs(degree))[:, None], jnp.float32)
+
+
+def first_capacity(params: Gaussians, valid, views: Views) -> int:
+    """The tile-intersection buffer of the first steps: a power of two that holds every training
+    view of the starting set (counted from the projection, so no step overflows and no program
+    is compiled for a buffer that is outgrown at once), and at least ``MIN_CAPACITY`` and
+    ``CAPACITY_PER_GAUSSIAN`` slots per (padded) Gaussian."""
+    counts = _views_intersections(params, valid, jnp.asarray(views.Ks), jnp.asarray(views.world_to_cameras),
+                                  width=views.width, height=views.height, config=RasterConfig())
+    return max(MIN_CAPACITY, next_power_of_two(CAPACITY_PER_GAUSSIAN * int(valid.shape[0])),
+               next_power_of_two(int(jnp.max(counts))))
 
 
 def peak_device_memory_mb() -> float | None:
@@ -277,13 +293,15 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     size = gaussian_bucket(init.num)
     params, valid = padded(init, size)
     state = splat_fit.init_state(params)
-    raster = RasterConfig(capacity=max(MIN_CAPACITY, next_power_of_two(CAPACITY_PER_GAUSSIAN * size)))
+    raster = RasterConfig()
     grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
     loop = _Loop(buckets={size})
     resumed_at = None
     if resume and checkpoint is not None and Path(checkpoint).is_file():
         params, valid, state, grad_sum, seen, raster, loop = load_checkpoint(Path(checkpoint), stamp, rng, raster)
         resumed_at = loop.step
+    else:
+        raster = RasterConfig(capacity=first_capacity(params, valid, views))
     bg = jnp.asarray(background, jnp.float32)
     step_fn = _train_step_donated if donate else _train_step
     programs = Programs(enabled=jax.default_backend() != "cpu" if compile_ahead is None else compile_ahead)
@@ -327,6 +345,9 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
 
     if densifying:  # densification at the starting size, compiled while the first step compiles
         prepare_densify(programs, params, state, int(valid.shape[0]), config)
+    switch_interval = sys.getswitchinterval()
+    if programs.enabled:
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         while loop.step < config.steps or inflight:
             ahead = loop.step + len(inflight)  # steps done once those in flight succeed
@@ -393,6 +414,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         if written is not None:
             written.wait()
         programs.wait()
+        sys.setswitchinterval(switch_interval)
     wall_s = time.perf_counter() - t0
     # the median leaves out the few intervals that held a compilation (one per program)
     step_s = float(np.median(step_times)) if step_times else 0.0

@@ -61,14 +61,25 @@ def test_steps_that_overflow_are_trained_again(toy, monkeypatch):
     again with a grown buffer, so the run still makes every step and its loss falls."""
     from phirie_jax.capture import train
 
-    monkeypatch.setattr(train, "MIN_CAPACITY", 64)
-    monkeypatch.setattr(train, "CAPACITY_PER_GAUSSIAN", 0)
+    monkeypatch.setattr(train, "first_capacity", lambda *args: 64)
     short = dataclasses.replace(TOY, steps=8, densify_from=100, checkpoint_interval=0)
     trained = _train(toy, config=short)
     record = trained.record
     assert record["capacity_retries"] >= 2 and trained.raster.capacity > 64  # both steps in flight overflowed
     assert len(trained.losses) == short.steps and np.all(np.isfinite(trained.losses))
     assert trained.losses[-1] < trained.losses[0]
+
+
+def test_the_first_buffer_holds_every_view(toy, monkeypatch):
+    """The starting capacity is counted from the views: no step overflows, however few slots a
+    Gaussian would get by the per-Gaussian rule."""
+    from phirie_jax.capture import train
+
+    monkeypatch.setattr(train, "MIN_CAPACITY", 64)
+    monkeypatch.setattr(train, "CAPACITY_PER_GAUSSIAN", 1)
+    short = dataclasses.replace(TOY, steps=6, densify_from=100, checkpoint_interval=0)
+    trained = _train(toy, config=short)
+    assert trained.record["capacity_retries"] == 0 and trained.raster.capacity > 64
 
 
 def test_killed_training_resumes_to_the_same_gaussians(toy, tmp_path):

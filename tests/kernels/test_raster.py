@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kernels.gaussians import Gaussians
-from kernels.raster import RasterConfig, rasterize, render_batch
+from kernels.raster import RasterConfig, intersections_needed, rasterize, render_batch
 from kernels.sh import sh_basis
 
 IMAGE_TOL = 1e-4          # per-pixel agreement with the float64 reference
@@ -234,6 +234,8 @@ def test_overflow_is_reported(scene_and_reference):
     assert bool(small.overflow) and int(small.num_intersections) == needed
     # What did fit was rendered (the nearest Gaussians first), the rest is missing.
     assert float(jnp.mean(small.alpha)) < float(jnp.mean(full.alpha))
+    # The count from the projection alone is the one rendering reports, whatever the buffer.
+    assert int(intersections_needed(g, K, w2c, width=WIDTH, height=HEIGHT, config=DEFAULT)) == needed
 
 
 # --- gradients -------------------------------------------------------------------------
