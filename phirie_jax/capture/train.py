@@ -141,21 +141,24 @@ def init_from_points(points: np.ndarray, colours: np.ndarray, config: TrainConfi
         opacity_logits=np.full(n, logit, np.float32), sh=sh)
 
 
+# The step's small inputs are host (NumPy) values: the step's call takes them to the device with
+# its other arguments, where a JAX array made for each would be a separate operation per step.
+
 def learning_rates(config: TrainConfig, extent: float, step: int) -> Gaussians:
-    """Per-field rates at ``step`` (0-based): the position's decays exponentially over the run."""
+    """Per-field rates at ``step`` (0-based), NumPy float32: the position's decays exponentially
+    over the run."""
     t = step / max(1, config.steps - 1)
     position = config.lr_position * extent * (config.lr_position_final / config.lr_position) ** t
     sh = np.full((num_sh_coeffs(config.sh_degree), 1), config.lr_colour / 20.0, np.float32)
     sh[0] = config.lr_colour
-    return Gaussians(means=jnp.float32(position), quats=jnp.float32(config.lr_rotation),
-                     log_scales=jnp.float32(config.lr_scale), opacity_logits=jnp.float32(config.lr_opacity),
-                     sh=jnp.asarray(sh))
+    return Gaussians(means=np.float32(position), quats=np.float32(config.lr_rotation),
+                     log_scales=np.float32(config.lr_scale), opacity_logits=np.float32(config.lr_opacity), sh=sh)
 
 
-def sh_mask(config: TrainConfig, step: int) -> jax.Array:
-    """(K, 1) 1 for the coefficients of the bands on at ``step``."""
+def sh_mask(config: TrainConfig, step: int) -> np.ndarray:
+    """(K, 1) float32, 1 for the coefficients of the bands on at ``step``."""
     degree = min(config.sh_degree, step // config.sh_band_interval)
-    return jnp.asarray((np.arange(num_sh_coeffs(config.sh_degree)) < num_sh_coeffs(degree))[:, None], jnp.float32)
+    return (np.arange(num_sh_coeffs(config.sh_degree)) < num_sh_coeffs(degree))[:, None].astype(np.float32)
 
 
 def first_capacity(params: Gaussians, valid, views: Views) -> int:
@@ -300,7 +303,9 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     if resume and checkpoint is not None and Path(checkpoint).is_file():
         params, valid, state, grad_sum, seen, raster, loop = load_checkpoint(Path(checkpoint), stamp, rng, raster)
         resumed_at = loop.step
+        count = int(valid.sum())
     else:
+        count = init.num  # the valid Gaussians, kept on the host (reading the device's would wait for it)
         raster = RasterConfig(capacity=first_capacity(params, valid, views))
     bg = jnp.asarray(background, jnp.float32)
     step_fn = _train_step_donated if donate else _train_step
@@ -396,7 +401,8 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 size = int(valid.shape[0])
                 loop.buckets.add(size)
                 grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
-                loop.events.append({"step": s, "gaussians": int(counts.pop("count")), **counts})
+                count = int(counts.pop("count"))
+                loop.events.append({"step": s, "gaussians": count, **counts})
                 if loop.events[-1]["gaussians"] > GROW_AHEAD * size:  # the next bucket's program
                     prepare(2 * size, raster.capacity)
                 densify_s += time.perf_counter() - t_densify
@@ -409,7 +415,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
                 written = save_checkpoint(Path(checkpoint), params, valid, state, grad_sum, seen, raster, loop, rng,
                                           stamp)
             if on_step is not None:
-                on_step(s, loop.losses[-1], int(valid.sum()))
+                on_step(s, loop.losses[-1], count)
     finally:  # a checkpoint is whole on disk before anything else happens, a kill included
         if written is not None:
             written.wait()
