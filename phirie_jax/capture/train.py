@@ -54,6 +54,7 @@ from phirie_jax.types import Camera, GaussianSplatData
 
 MIN_CAPACITY = 1 << 16         # tile intersections of the first program
 CAPACITY_PER_GAUSSIAN = 4      # ... or this many per (padded) Gaussian, if more
+FIRST_CAPACITY_MARGIN = 1.5    # ... or the busiest view's count at the start × this (footprints grow in the first steps)
 EXTENT_MARGIN = 1.1            # gsplat's scene scale: 1.1 × the largest camera distance from their mean
 RESET_CEILING = 2.0            # an opacity reset clamps opacities to this × min_opacity (gsplat)
 CHECKPOINT_VERSION = 1
@@ -163,13 +164,14 @@ def sh_mask(config: TrainConfig, step: int) -> np.ndarray:
 
 def first_capacity(params: Gaussians, valid, views: Views) -> int:
     """The tile-intersection buffer of the first steps: a power of two that holds every training
-    view of the starting set (counted from the projection, so no step overflows and no program
-    is compiled for a buffer that is outgrown at once), and at least ``MIN_CAPACITY`` and
-    ``CAPACITY_PER_GAUSSIAN`` slots per (padded) Gaussian."""
+    view of the starting set with ``FIRST_CAPACITY_MARGIN`` to spare (counted from the
+    projection, so the first steps do not overflow and compile a program for each buffer they
+    outgrow), and at least ``MIN_CAPACITY`` and ``CAPACITY_PER_GAUSSIAN`` slots per (padded)
+    Gaussian."""
     counts = _views_intersections(params, valid, jnp.asarray(views.Ks), jnp.asarray(views.world_to_cameras),
                                   width=views.width, height=views.height, config=RasterConfig())
     return max(MIN_CAPACITY, next_power_of_two(CAPACITY_PER_GAUSSIAN * int(valid.shape[0])),
-               next_power_of_two(int(jnp.max(counts))))
+               next_power_of_two(int(FIRST_CAPACITY_MARGIN * int(jnp.max(counts)))))
 
 
 def peak_device_memory_mb() -> float | None:
@@ -307,6 +309,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     else:
         count = init.num  # the valid Gaussians, kept on the host (reading the device's would wait for it)
         raster = RasterConfig(capacity=first_capacity(params, valid, views))
+    start_capacity = raster.capacity
     bg = jnp.asarray(background, jnp.float32)
     step_fn = _train_step_donated if donate else _train_step
     programs = Programs(enabled=jax.default_backend() != "cpu" if compile_ahead is None else compile_ahead)
@@ -324,9 +327,14 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     last_args: tuple = ()               # the arguments of the last step dispatched (their shapes)
     densifying = config.densify_from < config.densify_until
 
+    asked: set = set()  # the sizes prepare() was asked for (each traced once: tracing takes the loop's host time)
+
     def prepare(rows: int, capacity: int) -> None:
         """Compile the step for these sizes, and densification at these rows, in the background
         (``phirie_jax.capture.programs``)."""
+        if (rows, capacity) in asked:
+            return
+        asked.add((rows, capacity))
         params_, state_, lrs_, valid_, mask_, *view_, grad_sum_, seen_ = last_args
         programs.prepare(("step", rows, capacity), step_fn, (
             with_rows(params_, rows), with_rows(state_, rows), like(lrs_), with_rows(valid_, rows), like(mask_),
@@ -430,7 +438,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         "steps": config.steps, "gaussians": gaussians.num, "initial_gaussians": init.num,
         "loss_first": loop.losses[0] if loop.losses else None, "loss_last": loop.losses[-1] if loop.losses else None,
         "densify": loop.events, "opacity_resets": loop.resets, "buckets": sorted(loop.buckets),
-        "capacity": raster.capacity, "capacity_retries": loop.retries, "programs": len(called),
+        "capacity": raster.capacity, "first_capacity": start_capacity, "capacity_retries": loop.retries, "programs": len(called),
         "programs_compiled_ahead": sorted(programs.ready, key=str), "compile_ahead_s": round(programs.background_s, 3),
         "backend": jax.default_backend(), "device": str(jax.devices()[0]), "resumed_at": resumed_at,
         "wall_s": round(wall_s, 3), "step_s_median": round(step_s, 4),
