@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from kernels import splat_fit
-from kernels.raster import RasterConfig
+from kernels.raster import RasterConfig, rasterize
 from phirie_jax.capture.config import TrainConfig
 from phirie_jax.capture.densify import densify_and_prune, densify_on_device, padded, reset_opacity
 from phirie_jax.capture.train import Views, learning_rates, sh_mask, step_spread, train_gaussians, views_psnr
@@ -71,15 +71,22 @@ def test_steps_that_overflow_are_trained_again(toy, monkeypatch):
 
 
 def test_the_first_buffer_holds_every_view(toy, monkeypatch):
-    """The starting capacity is counted from the views: no step overflows, however few slots a
-    Gaussian would get by the per-Gaussian rule."""
+    """The starting capacity is counted from the views, with the margin to spare: every view's
+    render fits it, however few slots a Gaussian would get by the per-Gaussian rule."""
     from phirie_jax.capture import train
+    from phirie_jax.render import gaussian_bucket
 
     monkeypatch.setattr(train, "MIN_CAPACITY", 64)
     monkeypatch.setattr(train, "CAPACITY_PER_GAUSSIAN", 1)
-    short = dataclasses.replace(TOY, steps=6, densify_from=100, checkpoint_interval=0)
-    trained = _train(toy, config=short)
-    assert trained.record["capacity_retries"] == 0 and trained.raster.capacity > 64
+    _, cameras, images, start = toy
+    params, valid = padded(start, gaussian_bucket(start.num))
+    capacity = train.first_capacity(params, valid, Views.of(images, cameras))
+    g = splat_fit.masked_sh(params, valid, jnp.ones((params.sh.shape[1], 1)))
+    count = jax.jit(lambda K, w2c: rasterize(g, K, w2c, width=W, height=H,
+                                             config=RasterConfig(capacity=capacity)).num_intersections)
+    needed = [int(count(jnp.asarray(c.K, jnp.float32), jnp.asarray(c.world_to_camera, jnp.float32))) for c in cameras]
+    assert capacity > 64 and capacity >= train.FIRST_CAPACITY_MARGIN * max(needed)
+    assert capacity & (capacity - 1) == 0
 
 
 def test_killed_training_resumes_to_the_same_gaussians(toy, tmp_path):
