@@ -34,7 +34,9 @@ from kernels.gaussians import Gaussians  # noqa: E402
 from kernels.project import project_gaussians  # noqa: E402
 from kernels.raster import RasterConfig, bin_gaussians, rasterize  # noqa: E402
 from kernels.sh import rgb_to_sh_dc  # noqa: E402
-from phirie_jax.render import next_power_of_two  # noqa: E402
+from phirie_jax.render import next_power_of_two, quarter_octave  # noqa: E402
+
+CAPACITY_RULES = {"power-of-two": next_power_of_two, "quarter-octave": quarter_octave}
 
 GARDEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "garden" / "test_garden.npz"
 GARDEN_OPACITY = 0.8
@@ -123,7 +125,8 @@ def compiled_memory_mb(compiled) -> float | None:
         return None
 
 
-def bench_jax(g, Ks, viewmats, width, height, base: RasterConfig, repeats, with_autodiff):
+def bench_jax(g, Ks, viewmats, width, height, base: RasterConfig, repeats, with_autodiff,
+              capacity_rule=next_power_of_two):
     render = jax.jit(lambda g, K, W, cfg: rasterize(g, K, W, width=width, height=height,
                                                     config=cfg), static_argnums=3)
     # Fit the capacities on every camera first (the host wrapper's job, done by hand here).
@@ -135,7 +138,7 @@ def bench_jax(g, Ks, viewmats, width, height, base: RasterConfig, repeats, with_
                 base, capacity=next_power_of_two(int(out.num_intersections))))
         needed = max(needed, int(out.num_intersections))
         longest = max(longest, int(out.max_tile_intersections))
-    config = dataclasses.replace(base, capacity=next_power_of_two(needed))
+    config = dataclasses.replace(base, capacity=capacity_rule(needed))
     weights = jax.random.uniform(jax.random.key(0), (height, width, 3))
 
     def loss(g, K, W, cfg):
@@ -321,6 +324,9 @@ def main():
                         help="a prebuilt gsplat_cuda.so (skips gsplat's JIT build)")
     parser.add_argument("--sequential", action="store_true",
                         help="fused sequential chunk forward (RasterConfig.sequential)")
+    parser.add_argument("--capacity-rule", choices=["power-of-two", "quarter-octave"], default="power-of-two",
+                        help="the buffer for the busiest camera's intersections: the next power of two, or the "
+                             "next 2^k x (1, 1.25, 1.5, 1.75) (phirie_jax.render.quarter_octave)")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
 
@@ -340,8 +346,9 @@ def main():
         "cameras": len(Ks), "sh_degree": g.sh_degree,
     }
     ours, programs = bench_jax(g, Ks, viewmats, width, height, base, args.repeats,
-                               not args.no_autodiff)
+                               not args.no_autodiff, CAPACITY_RULES[args.capacity_rule])
     result["ours"] = ours
+    ours["capacity_rule"] = args.capacity_rule
     ours["gaussians_per_s_forward"] = round(g.num / (statistics.median(ours["forward_ms"]) / 1e3))
     if args.compare_jax and ours["compositor"] != "jax":
         reference, ref_programs = bench_jax(g, Ks, viewmats, width, height,

@@ -62,6 +62,16 @@ def next_power_of_two(n: int) -> int:
     return 1 << max(0, int(n) - 1).bit_length()
 
 
+def quarter_octave(n: int) -> int:
+    """The smallest 2^k × (1, 1.25, 1.5 or 1.75) at least n: a buffer size that wastes at most a
+    fifth of its slots (a power of two: up to half), with four programs per doubling."""
+    n = max(1, int(n))
+    top = next_power_of_two(n)
+    if top < 8:
+        return top
+    return next(top // 8 * m for m in (5, 6, 7, 8) if top // 8 * m >= n) if top // 2 < n else top
+
+
 def grown_capacity(raster: RasterConfig, needed: int, advice: str) -> RasterConfig:
     """``raster`` with room for ``needed`` tile intersections (at least twice its capacity, a power
     of two); past ``MAX_CAPACITY`` a ``RuntimeError`` ending with ``advice``."""
