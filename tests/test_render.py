@@ -12,7 +12,7 @@ from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig, rasterize
 from phirie_jax import render as render_mod
 from phirie_jax.io.camera import intrinsics_matrix
-from phirie_jax.render import Renderer, gaussian_bucket, pad_gaussians
+from phirie_jax.render import Renderer, gaussian_bucket, pad_gaussians, quarter_octave
 from phirie_jax.types import Camera
 from tests.conftest import shared_data
 
@@ -218,3 +218,11 @@ def test_real_donut_renders():
     depth = np.asarray(out.depth_normalized)[hit]
     dist = np.linalg.norm(cam.center - centre)
     assert np.all((depth > dist - 2 * radius) & (depth < dist + 2 * radius))
+
+
+def test_quarter_octave_is_the_smallest_allowed_size_that_holds_n():
+    allowed = sorted({m << k for k in range(20) for m in (4, 5, 6, 7)} | {1, 2, 4})
+    for n in range(1, 5000):
+        assert quarter_octave(n) == min(a for a in allowed if a >= n), n
+        if n > 8:
+            assert quarter_octave(n) < 1.25 * n + 1  # at most a fifth of the slots idle
