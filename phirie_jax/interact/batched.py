@@ -56,6 +56,7 @@ from phirie_jax.render import (
     grown_capacity,
     next_power_of_two,
     pad_gaussians,
+    quarter_octave,
 )
 from phirie_jax.rotations import pose_matrix
 from phirie_jax.types import Camera
@@ -402,6 +403,11 @@ class WorldRenderer:
                 self.retries += 1
                 config = grown_capacity(config, needed, "render the batched worlds at a lower "
                                                         "resolution")
+            if quarter_octave(needed) < config.capacity:
+                # The background never moves: its lists need only the slots its busiest camera
+                # fills, and every world's merge and composite walks all of them.
+                config = dataclasses.replace(config, capacity=quarter_octave(needed))
+                views = _static_views(background, Ks, w2cs, width=width, height=height, config=config)
             self._views[key] = (self.mesh.put_replicated(views), config)
         views, config = self._views[key]
         Ks, w2cs = self.mesh.put_replicated((Ks, w2cs))

@@ -7,6 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from phirie_jax.interact.batched import WorldRenderer, as_pixels
+from phirie_jax.render import quarter_octave
 from tests.interact.test_environment import toy_env
 
 IMAGE_TOL = 1e-5  # the same float32 arithmetic, compiled into different programs
@@ -38,6 +39,9 @@ def test_each_world_renders_as_the_single_environment(tmp_path):
     # the worlds differ, and the objects are in view
     assert float(np.abs(out.rgb[0, 0] - out.rgb[1, 0]).max()) > 0.1
     assert float(np.mean(out.alpha)) > 0.05
+    # the background's lists hold what its busiest camera needs, at most a fifth of them idle
+    views, config = next(iter(renderer._views.values()))
+    assert config.capacity == quarter_octave(int(np.max(views.needed)))
 
 
 def test_policy_pixels_are_the_render_in_the_policys_type(tmp_path):
