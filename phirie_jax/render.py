@@ -69,7 +69,7 @@ def quarter_octave(n: int) -> int:
     top = next_power_of_two(n)
     if top < 8:
         return top
-    return next(top // 8 * m for m in (5, 6, 7, 8) if top // 8 * m >= n) if top // 2 < n else top
+    return next(top // 8 * m for m in (5, 6, 7, 8) if top // 8 * m >= n)  # n > top / 2 = top // 8 * 4
 
 
 def grown_capacity(raster: RasterConfig, needed: int, advice: str) -> RasterConfig:
