@@ -1,12 +1,13 @@
 """Interactive-environment benchmark: frames/s and simulated steps/s; prints one JSON object.
 
 Single environment (MuJoCo C + the JAX renderer) and batched worlds (MJX + the batched
-renderer: the background binned once per camera, each world's body-attached Gaussians merged
-into it), each against looping the single environment over the same worlds and cameras,
+renderer: the background binned and composited once per camera, each world's body-attached
+Gaussians merged into the tiles they reach, which alone are composited again), each against looping the single environment over the same worlds and cameras,
 measured in the same run. Compile times are reported apart from run times (first call vs.
 the median of later calls). Each batched run also renders world 0's state with the single
 environment (the same body poses) and reports the largest pixel difference from the batched
-image.
+image. ``--whole-images`` also times, in the same run, the batched render that merges and
+composites every tile of every image (the reference the changed-tile render replaces).
 
     python -m experiments.bench_env OUT_DIR [--worlds 1 8 32] [--cameras 4]
 
@@ -16,6 +17,7 @@ OUT_DIR is a `phirie convert` output folder (scene.xml, background.ply, objects/
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import sys
@@ -28,7 +30,7 @@ import numpy as np
 from experiments.profiling import kernel_summary
 from experiments.report import emit
 from experiments.timing import timed
-from phirie_jax.interact.batched import BatchedEnvironment
+from phirie_jax.interact.batched import BatchedEnvironment, WorldRenderer
 from phirie_jax.interact.environment import Environment
 
 
@@ -44,7 +46,7 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
 
 def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
                   collision: str, max_images: int, loop: bool = True, trace: Path | None = None,
-                  pixels_only: bool = False) -> dict:
+                  pixels_only: bool = False, whole_images: bool = False) -> dict:
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
@@ -74,6 +76,20 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     env.data.xquat[:] = quats / np.linalg.norm(quats, axis=1, keepdims=True)  # float32 in MJX
     single = np.asarray(env.render(cameras[0]).rgb)
     result["max_abs_rgb_diff_world0_vs_single_uint8"] = round(float(np.max(np.abs(world0 - single))), 4)
+    renderer = batch._renderer
+    result["changed_tiles"] = {"capacities": dataclasses.asdict(renderer.capacities), "retries": renderer.retries}
+    if whole_images:  # the reference: every tile of every image merged and composited, same run
+        whole = WorldRenderer(env, devices=batch.mesh.devices, whole_images=True)
+        placements = batch.placements()
+        whole_first, whole_s = timed(lambda: whole.render(placements, cameras, max_images=max_images,
+                                                          pixels="uint8"), repeats)
+        reference = np.asarray(whole.render(placements, cameras, max_images=max_images, pixels="uint8"), np.int32)
+        difference = np.abs(np.asarray(frames_uint8, np.int32) - reference)
+        result["whole_images"] = {
+            "uint8_frames_per_s": round(frames / whole_s, 2), "uint8_render_compile_s": round(whole_first - whole_s, 2),
+            "speedup_changed_tiles": round(whole_s / pixels_s, 3),
+            "max_abs_uint8_difference": int(difference.max()),
+            "share_of_pixels_equal": round(float(np.mean(difference == 0)), 6)}
     if trace is not None:
         with jax.profiler.trace(str(trace), create_perfetto_trace=True):
             for _ in range(3):
@@ -122,6 +138,8 @@ def main() -> None:
                         help="profile 3 batched renders of the largest batch here; the JSON gets the time per kernel")
     parser.add_argument("--pixels-only", action="store_true",
                         help="time only the uint8 frames a policy reads, not the float32 RasterOutput as well")
+    parser.add_argument("--whole-images", action="store_true",
+                        help="also time the uint8 render that merges and composites every tile (the reference)")
     parser.add_argument("--no-loop", action="store_true",
                         help="skip the single-environment loop baseline (minutes at thousands of frames)")
     args = parser.parse_args()
@@ -144,7 +162,7 @@ def main() -> None:
         result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats,
                                                args.collision, args.max_images, loop=not args.no_loop,
                                                trace=args.trace if worlds == max(args.worlds) else None,
-                                               pixels_only=args.pixels_only))
+                                               pixels_only=args.pixels_only, whole_images=args.whole_images))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
     emit(result, args.out)
 

@@ -11,6 +11,13 @@ tile's static run, and a cumulative count for the static entries), then composit
 merged lists with the usual compositor. The result is the image ``kernels.raster.rasterize``
 gives for the concatenation [static, moving]: one depth order per pixel, ties broken as its
 stable sort breaks them (static first, then by index).
+
+``rasterize_changed_tiles`` gives the same image with less work: a tile that no moving
+Gaussian reaches looks as the static set alone makes it, which ``static_view`` composites
+once (``StaticView.acc``, ``StaticView.trans``). Per render only the changed tiles — those
+in the moving set's lists — have their static lists gathered, merged with the moving
+entries and composited, laid side by side in a compact strip of tiles; their pixels then
+replace the static ones.
 """
 
 from __future__ import annotations
@@ -22,8 +29,15 @@ from kernels.composite import TileGrid, TileLists
 from kernels.gaussians import Gaussians
 from kernels.project import project_gaussians
 from kernels.pytree import pytree_dataclass
-from kernels.raster import (RasterConfig, RasterOutput, base_columns, bin_gaussians, composite_params,
-                            composite_rows, images_from_tiles)
+from kernels.raster import (
+    RasterConfig,
+    RasterOutput,
+    base_columns,
+    bin_gaussians,
+    composite_params,
+    composite_rows,
+    images_from_tiles,
+)
 
 
 @pytree_dataclass
@@ -36,6 +50,8 @@ class StaticView:
     needed: jax.Array       # () int32 tile intersections needed (> Cs: lists incomplete)
     radii: jax.Array        # (Ns,) 3σ screen radius, 0 where culled
     num_visible: jax.Array  # () int32
+    acc: jax.Array          # (NT, P, D − 6) the static set alone composited, per tile pixel
+    trans: jax.Array        # (NT, P) its transmittance
 
 
 def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height: int,
@@ -53,8 +69,10 @@ def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height:
     lists, needed = bin_gaussians(proj, grid, config.capacity)
     slot = jnp.arange(config.capacity, dtype=jnp.int32)
     depths = jnp.where(slot < needed, proj.depths[lists.gaussian_ids], jnp.inf)
-    return StaticView(composite_params(proj, features, config.depth), lists, depths, needed, proj.radii,
-                      jnp.sum(proj.visible, dtype=jnp.int32))
+    params = composite_params(proj, features, config.depth)
+    acc, trans, _, _ = composite_rows(grid, config, params, lists)
+    return StaticView(params, lists, depths, needed, proj.radii, jnp.sum(proj.visible, dtype=jnp.int32),
+                      acc, trans)
 
 
 def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: TileLists, moving_depths,
@@ -99,6 +117,18 @@ def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: T
                      static.tile_count + moving.tile_count)
 
 
+def _moving_lists(moving: Gaussians, K, world_to_camera, grid: TileGrid, moving_capacity: int,
+                  config: RasterConfig):
+    """The moving set projected and binned: (projection, lists, needed () int32, entry depths
+    (Cm,), +inf past the lists)."""
+    proj = project_gaussians(moving, K, world_to_camera, width=grid.width, height=grid.height,
+                             tile_size=config.tile_size, near=config.near)
+    lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, moving_capacity)
+    slot = jnp.arange(moving_capacity, dtype=jnp.int32)
+    depths = jnp.where(slot < needed, jax.lax.stop_gradient(proj.depths)[lists.gaussian_ids], jnp.inf)
+    return proj, lists, needed, depths
+
+
 def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camera, *, width: int,
                           height: int, moving_capacity: int, background=None, features=None,
                           config: RasterConfig = RasterConfig()) -> RasterOutput:
@@ -112,15 +142,10 @@ def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camer
     """
     grid = TileGrid(width, height, config.tile_size)
     dtype = view.params.dtype
-    proj = project_gaussians(moving, K, world_to_camera, width=width, height=height,
-                             tile_size=config.tile_size, near=config.near)
+    proj, lists, needed, depths = _moving_lists(moving, K, world_to_camera, grid, moving_capacity, config)
     if features is None:
         features = jnp.zeros((moving.num, view.params.shape[1] - base_columns(config.depth)), dtype)
     background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
-    lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, moving_capacity)
-    slot = jnp.arange(moving_capacity, dtype=jnp.int32)
-    depths = jnp.where(slot < needed, jax.lax.stop_gradient(proj.depths)[lists.gaussian_ids],
-                       jnp.inf)
     ns = view.params.shape[0]
     merged = merge_tile_lists(grid, view.lists, view.depths, lists, depths, ns)
     params = jnp.concatenate([view.params, composite_params(proj, features, config.depth)], axis=0)
@@ -136,3 +161,117 @@ def rasterize_over_static(view: StaticView, moving: Gaussians, K, world_to_camer
         steps=steps,
         capacity=config.capacity,
     )
+
+
+@pytree_dataclass
+class TileUse:
+    """How much of each capacity one ``rasterize_changed_tiles`` image needed (to size them)."""
+
+    moving: jax.Array          # () int32 tile intersections of the moving set
+    tiles: jax.Array           # () int32 tiles the moving set reaches (changed tiles)
+    static_entries: jax.Array  # () int32 static entries in those tiles
+
+
+def _changed_static(static: TileLists, static_depths, tiles, used, entry_capacity: int):
+    """The static lists of the changed tiles, one after another: compact lists over the D
+    tiles (D,) int32 (used (D,) bool; unused tiles get empty lists) in ``entry_capacity``
+    slots, their entry depths, and the entries needed () int32."""
+    cs = static.gaussian_ids.shape[0]
+    count = jnp.where(used, static.tile_count[tiles], 0)
+    ends = jnp.cumsum(count, dtype=jnp.int32)
+    start = ends - count
+    slot = jnp.arange(entry_capacity, dtype=jnp.int32)
+    tile = jnp.minimum(jnp.searchsorted(ends, slot, side="right"), tiles.shape[0] - 1)
+    source = jnp.clip(static.tile_start[tiles[tile]] + slot - start[tile], 0, cs - 1)
+    valid = slot < ends[-1]
+    ids = jnp.where(valid, static.gaussian_ids[source], 0)
+    depths = jnp.where(valid, static_depths[source], jnp.inf)
+    # a tile cut by the capacity keeps what fits (the render is then marked as overflowing)
+    fitted_start = jnp.minimum(start, entry_capacity)
+    fitted = TileLists(ids, fitted_start, jnp.minimum(ends, entry_capacity) - fitted_start)
+    return fitted, depths, ends[-1]
+
+
+def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_params):
+    """One parameter row per merged entry (ids ≥ Ns are moving rows), its centre shifted from
+    the entry's image tile to its place in the strip: compact tile k is the strip's k-th tile
+    (strip x = k·T, y = 0); tiles (D,) int32 the image tile of each compact tile."""
+    ns, nm = static_params.shape[0], moving_params.shape[0]
+    entries = lists.gaussian_ids.shape[0]
+    ids = lists.gaussian_ids
+    rows = jnp.where((ids < ns)[:, None], static_params[jnp.minimum(ids, ns - 1)],
+                     moving_params[jnp.clip(ids - ns, 0, nm - 1)])
+    position = jnp.arange(entries, dtype=jnp.int32)
+    compact = jnp.clip(jnp.searchsorted(lists.tile_start, position, side="right") - 1, 0,
+                       tiles.shape[0] - 1)
+    image_tile = tiles[compact]
+    ts = grid.tile_size
+    shift = jnp.stack([(compact - image_tile % grid.tiles_x) * ts, -(image_tile // grid.tiles_x) * ts],
+                      axis=1).astype(rows.dtype)
+    return rows.at[:, :2].add(shift)
+
+
+def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_camera, *, width: int,
+                            height: int, moving_capacity: int, tile_capacity: int, entry_capacity: int,
+                            background=None, features=None, config: RasterConfig = RasterConfig()
+                            ) -> tuple[RasterOutput, TileUse]:
+    """``rasterize_over_static``'s image, compositing only the tiles the moving set reaches.
+
+    view: ``static_view`` of the same camera K (3, 3), world_to_camera (4, 4) and config;
+    moving (Nm Gaussians) with features (Nm, F) or None; background (3,) or None.
+    Capacities: ``moving_capacity`` moving tile intersections, ``tile_capacity`` changed
+    tiles, ``entry_capacity`` static entries in them. Returns the ``RasterOutput`` (the same
+    fields as ``rasterize_over_static``; ``steps`` counts the changed tiles' compositing, and
+    ``overflow`` also says a changed-tile capacity was outgrown) and the ``TileUse``.
+    """
+    grid = TileGrid(width, height, config.tile_size)
+    strip = TileGrid(tile_capacity * config.tile_size, config.tile_size, config.tile_size)
+    dtype = view.params.dtype
+    proj, lists, needed, depths = _moving_lists(moving, K, world_to_camera, grid, moving_capacity, config)
+    if features is None:
+        features = jnp.zeros((moving.num, view.params.shape[1] - base_columns(config.depth)), dtype)
+    background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
+
+    changed = lists.tile_count > 0
+    num_changed = jnp.sum(changed, dtype=jnp.int32)
+    tiles = jnp.nonzero(changed, size=tile_capacity, fill_value=0)[0].astype(jnp.int32)
+    used = jnp.arange(tile_capacity, dtype=jnp.int32) < num_changed
+    static, static_depths, static_needed = _changed_static(view.lists, view.depths, tiles, used,
+                                                           entry_capacity)
+    in_runs = jnp.minimum(lists.tile_start[-1] + lists.tile_count[-1], moving_capacity)
+    moving_lists = TileLists(lists.gaussian_ids, jnp.where(used, lists.tile_start[tiles], in_runs),
+                             jnp.where(used, lists.tile_count[tiles], 0))
+    merged = merge_tile_lists(strip, static, static_depths, moving_lists, depths, view.params.shape[0])
+    rows = _strip_rows(grid, merged, tiles, view.params, composite_params(proj, features, config.depth))
+    entries = TileLists(jnp.arange(rows.shape[0], dtype=jnp.int32), merged.tile_start, merged.tile_count)
+    acc, trans, steps, too_long = composite_rows(strip, config, rows, entries)
+
+    target = jnp.where(used, tiles, grid.num_tiles)  # unused strip tiles are dropped
+    acc = view.acc.at[target].set(acc, mode="drop")
+    trans = view.trans.at[target].set(trans, mode="drop")
+    rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background, config.depth)
+    unchanged_longest = jnp.max(jnp.where(changed, 0, view.lists.tile_count))
+    use = TileUse(needed, num_changed, static_needed)
+    return RasterOutput(
+        rgb=rgb, depth=depth, alpha=alpha, features=feats,
+        radii=jnp.concatenate([view.radii, jax.lax.stop_gradient(proj.radii)]),
+        num_visible=view.num_visible + jnp.sum(proj.visible, dtype=jnp.int32),
+        num_intersections=view.needed + needed,
+        max_tile_intersections=jnp.maximum(unchanged_longest, jnp.max(merged.tile_count)),
+        overflow=((needed > moving_capacity) | (view.needed > view.depths.shape[0]) | too_long
+                  | (num_changed > tile_capacity) | (static_needed > entry_capacity)),
+        steps=steps,
+        capacity=config.capacity,
+    ), use
+
+
+def changed_tile_use(view: StaticView, moving: Gaussians, K, world_to_camera, *, width: int, height: int,
+                     moving_capacity: int, config: RasterConfig = RasterConfig()) -> TileUse:
+    """The ``TileUse`` of ``rasterize_changed_tiles`` with the same arguments, without rendering:
+    the moving set's tile intersections, the tiles they reach (counted from the entries that fit
+    ``moving_capacity``) and the static entries in those tiles."""
+    grid = TileGrid(width, height, config.tile_size)
+    _, lists, needed, _ = _moving_lists(moving, K, world_to_camera, grid, moving_capacity, config)
+    changed = lists.tile_count > 0
+    return TileUse(needed, jnp.sum(changed, dtype=jnp.int32),
+                   jnp.sum(jnp.where(changed, view.lists.tile_count, 0), dtype=jnp.int32))

@@ -21,8 +21,10 @@ Gaussians that never move (the background) are projected, coloured and binned on
 (``kernels.raster_merge.static_view``); per world only the Gaussians attached to bodies — the
 environment's ``object_gaussians`` with their ``body_index``, whatever bodies they belong
 to — are placed by that world's body placements, projected, binned and merged into the
-static tile lists by depth (``rasterize_over_static``), so each world's image is the single
-environment's render of the same state (one depth order per pixel).
+static tile lists by depth, so each world's image is the single environment's render of the
+same state (one depth order per pixel). Only the tiles the moving Gaussians reach are merged
+and composited (``rasterize_changed_tiles``); every other tile is the background's own image,
+composited once per camera.
 
 Several devices (``devices=``, default every device JAX sees): the worlds are spread over a 1-D
 mesh (``kernels.sharding.BatchMesh``): their count is padded to a multiple of the devices' (the
@@ -41,9 +43,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kernels.composite import TileGrid
 from kernels.gaussians import Gaussians, Sim3, quat_to_rotmat, transform_bodies
 from kernels.raster import RasterConfig, RasterOutput
-from kernels.raster_merge import StaticView, rasterize_over_static, static_view
+from kernels.raster_merge import (
+    StaticView,
+    TileUse,
+    changed_tile_use,
+    rasterize_changed_tiles,
+    rasterize_over_static,
+    static_view,
+)
 from kernels.sharding import BatchMesh, pad_rows
 from phirie_jax.construct.physics.warp_batch import warp_devices
 from phirie_jax.interact.environment import Environment, compose_scene, load_spec
@@ -331,24 +341,57 @@ def _static_views(background: Gaussians, Ks, world_to_cameras, *, width: int, he
                                              config=config))(Ks, world_to_cameras)
 
 
-@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity", "mesh", "pixels"))
+@dataclasses.dataclass(frozen=True)
+class WorldCapacities:
+    """Slots of one image's lists (``rasterize_changed_tiles``), shared by every world and camera."""
+
+    moving: int    # tile intersections of the moving Gaussians
+    tiles: int     # tiles they reach
+    entries: int   # background entries in those tiles
+
+    def grown(self, use: TileUse, num_tiles: int) -> WorldCapacities:
+        """Room for the largest use (``TileUse`` of every image); unchanged where it fitted. The
+        moving lists double, as ``phirie_jax.render.Renderer``'s; the changed tiles and their
+        background entries grow to a quarter octave past the use with a quarter to spare (objects
+        move between renders), the tiles at most all of the image's."""
+        moving, tiles, entries = (max(1, int(jnp.max(x))) for x in (use.moving, use.tiles, use.static_entries))
+        return WorldCapacities(
+            self.moving if moving <= self.moving else max(2 * self.moving, next_power_of_two(moving)),
+            self.tiles if tiles <= self.tiles else min(num_tiles, quarter_octave(tiles + tiles // 4)),
+            self.entries if entries <= self.entries else quarter_octave(entries + entries // 4))
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "config", "capacities", "mesh", "pixels",
+                                             "whole_images"))
 def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks, world_to_cameras,
                    background, *, width: int, height: int, config: RasterConfig,
-                   moving_capacity: int, mesh: BatchMesh, pixels: str | None = None
-                   ) -> RasterOutput | tuple[jax.Array, jax.Array]:
+                   capacities: WorldCapacities, mesh: BatchMesh, pixels: str | None = None,
+                   whole_images: bool = False) -> tuple[RasterOutput | jax.Array, TileUse]:
     """Images (W, C) of W worlds: attached Gaussians (Nm) with body (Nm,) int32, placements
     (W, K, 4, 4) canonical → world per body (W a multiple of the mesh's devices, each rendering
     its own worlds), views of C cameras (Ks (C, 3, 3), world_to_cameras (C, 4, 4)), background (3,).
-    A ``RasterOutput``; with ``pixels`` (``as_pixels``) only the colour in that type, (W, C, H, W, 3),
-    and the intersection counts (W, C): nothing else is kept in device memory."""
+    A ``RasterOutput``, or with ``pixels`` (``as_pixels``) only the colour in that type,
+    (W, C, H, W, 3), nothing else kept in device memory; and each image's ``TileUse`` (W, C).
+    ``whole_images``: every tile merged and composited (``rasterize_over_static``; the use then
+    counts only the moving intersections)."""
+
+    def one_image(view, moved, K, W, background):
+        if not whole_images:
+            return rasterize_changed_tiles(
+                view, moved, K, W, width=width, height=height, moving_capacity=capacities.moving,
+                tile_capacity=capacities.tiles, entry_capacity=capacities.entries,
+                background=background, config=config)
+        out = rasterize_over_static(view, moved, K, W, width=width, height=height,
+                                    moving_capacity=capacities.moving, background=background, config=config)
+        zero = jnp.zeros((), jnp.int32)
+        return out, TileUse(out.num_intersections - view.needed, zero, zero)
 
     def worlds(views, attached, body, placements, Ks, world_to_cameras, background):
         def one_world(placement):
             moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
-            out = jax.vmap(lambda view, K, W: rasterize_over_static(
-                view, moved, K, W, width=width, height=height, moving_capacity=moving_capacity,
-                background=background, config=config))(views, Ks, world_to_cameras)
-            return out if pixels is None else (as_pixels(out.rgb, pixels), out.num_intersections)
+            out, use = jax.vmap(lambda view, K, W: one_image(view, moved, K, W, background))(
+                views, Ks, world_to_cameras)
+            return (out if pixels is None else as_pixels(out.rgb, pixels)), use
 
         return jax.vmap(one_world)(placements)
 
@@ -356,25 +399,50 @@ def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks,
         views, attached, body, placements, Ks, world_to_cameras, background)
 
 
+@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity", "mesh"))
+def _tile_use(views: StaticView, attached: Gaussians, body, placements, Ks, world_to_cameras, *,
+              width: int, height: int, config: RasterConfig, moving_capacity: int, mesh: BatchMesh) -> TileUse:
+    """``_render_worlds``' ``TileUse`` (W, C) without rendering (``changed_tile_use``): sizes the
+    first render's capacities."""
+
+    def worlds(views, attached, body, placements, Ks, world_to_cameras):
+        def one_world(placement):
+            moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
+            return jax.vmap(lambda view, K, W: changed_tile_use(
+                view, moved, K, W, width=width, height=height, moving_capacity=moving_capacity,
+                config=config))(views, Ks, world_to_cameras)
+
+        return jax.vmap(one_world)(placements)
+
+    return mesh.map(worlds, (False, False, False, True, False, False))(
+        views, attached, body, placements, Ks, world_to_cameras)
+
+
 class WorldRenderer:
     """Renders many worlds of one ``Environment`` from shared cameras (module docstring).
 
-    The background's tile lists are kept per camera set (the background never moves); the
-    capacities of both sets start from a guess and grow, as ``phirie_jax.render.Renderer``'s,
-    when a render reports overflow, so nothing is dropped. The worlds of a call are spread over
-    ``devices`` (``kernels.sharding.resolve_devices``: None, every device), all else replicated.
+    The background's tile lists and image are kept per camera set (the background never
+    moves). The moving lists' capacity starts from a guess, the changed tiles' are counted
+    before the first render; all grow, as ``phirie_jax.render.Renderer``'s, when a render
+    reports overflow, so nothing is dropped. The worlds of a call are spread over ``devices``
+    (``kernels.sharding.resolve_devices``: None, every device), all else replicated.
+    ``whole_images``: merge and composite every tile of every image (``rasterize_over_static``),
+    the reference the changed-tile render is measured against.
     """
 
-    def __init__(self, env: Environment, config: RasterConfig = RasterConfig(), devices=None):
+    def __init__(self, env: Environment, config: RasterConfig = RasterConfig(), devices=None,
+                 whole_images: bool = False):
         self.env = env
         self.config = config
+        self.whole_images = whole_images
         self.mesh = BatchMesh.over(devices)
         attached, body = env.object_gaussians, env.body_index
         if attached.num == 0:  # no body: one transparent Gaussian keeps the shapes non-empty
             attached, body = pad_gaussians(attached, 1), jnp.zeros(1, jnp.int32)
         self.attached, self.body = self.mesh.put_replicated((attached, jnp.asarray(body, jnp.int32)))
-        self.moving_capacity = next_power_of_two(max(INITIAL_CAPACITY // 16,
-                                                     INTERSECTIONS_GUESS * attached.num))
+        self.capacities = WorldCapacities(
+            moving=next_power_of_two(max(INITIAL_CAPACITY // 16, INTERSECTIONS_GUESS * attached.num)),
+            tiles=0, entries=0)  # 0: every capacity counted before the first render
         self._views: dict[tuple, tuple[StaticView, RasterConfig]] = {}
         self.retries = 0
 
@@ -413,6 +481,23 @@ class WorldRenderer:
         Ks, w2cs = self.mesh.put_replicated((Ks, w2cs))
         return views, config, Ks, w2cs, width, height
 
+    def _count_capacities(self, views: StaticView, placements, Ks, w2cs, width: int, height: int,
+                          config: RasterConfig, num_tiles: int):
+        """Size every list by what the worlds ``placements`` use (``_tile_use``), with a quarter
+        to spare, as objects move: before the first render, so that it compiles once."""
+        while True:
+            use = _tile_use(views, self.attached, self.body, placements, Ks, w2cs, width=width, height=height,
+                            config=config, moving_capacity=self.capacities.moving, mesh=self.mesh)
+            moving = int(jnp.max(use.moving))
+            if moving <= self.capacities.moving:
+                break
+            # the tiles were counted from cut lists: again, with room for every intersection
+            self.capacities = dataclasses.replace(self.capacities, moving=next_power_of_two(moving))
+        counted = dataclasses.replace(self.capacities, moving=quarter_octave(moving + moving // 4), tiles=0,
+                                      entries=0).grown(use, num_tiles)
+        # the whole-image render has no changed-tile lists: a placeholder slot each
+        self.capacities = dataclasses.replace(counted, tiles=1, entries=1) if self.whole_images else counted
+
     def render(self, placements, cameras: list[Camera | int], background=(0.0, 0.0, 0.0),
                max_images: int = MAX_IMAGES, pixels: str | None = None) -> RasterOutput | jax.Array:
         """placements (N, K, 4, 4) canonical → world of every body in N worlds; outputs with
@@ -430,23 +515,25 @@ class WorldRenderer:
         if placements.shape[1] == 0:  # no body: the padding Gaussian's placement
             placements = jnp.broadcast_to(jnp.eye(4), (placements.shape[0], 1, 4, 4))
         n, c = placements.shape[0], len(cams)
+        num_tiles = TileGrid(width, height, config.tile_size).num_tiles
         per = self.mesh.size * max(1, min(-(-n // self.mesh.size), max_images // c))
         bg = self.mesh.put_replicated(jnp.asarray(background, jnp.float32))
         chunks = []
         for start in range(0, n, per):
             worlds = np.minimum(np.arange(start, start + per), n - 1)
             chunk = self.mesh.put_rows(placements[worlds])
+            if not self.capacities.tiles:
+                self._count_capacities(views, chunk, Ks, w2cs, width, height, config, num_tiles)
             while True:
-                out = _render_worlds(views, self.attached, self.body, chunk, Ks, w2cs,
-                                     bg, width=width, height=height, config=config,
-                                     moving_capacity=self.moving_capacity, mesh=self.mesh, pixels=pixels)
-                counts = out.num_intersections if pixels is None else out[1]
-                moving_needed = int(jnp.max(counts - views.needed[None, :]))
-                if moving_needed <= self.moving_capacity:
+                out, use = _render_worlds(views, self.attached, self.body, chunk, Ks, w2cs, bg,
+                                          width=width, height=height, config=config,
+                                          capacities=self.capacities, mesh=self.mesh, pixels=pixels,
+                                          whole_images=self.whole_images)
+                grown = self.capacities.grown(use, num_tiles)
+                if grown == self.capacities:
                     break
                 self.retries += 1
-                self.moving_capacity = max(2 * self.moving_capacity,
-                                           next_power_of_two(moving_needed))
+                self.capacities = grown
             keep = min(per, n - start)
-            chunks.append(jax.tree.map(lambda x, keep=keep: x[:keep], out if pixels is None else out[0]))
+            chunks.append(jax.tree.map(lambda x, keep=keep: x[:keep], out))
         return jax.tree.map(lambda *x: jnp.concatenate(x), *chunks) if len(chunks) > 1 else chunks[0]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.interact.batched import WorldRenderer, as_pixels
+from phirie_jax.interact.batched import WorldCapacities, WorldRenderer, as_pixels
 from phirie_jax.render import quarter_octave
 from tests.interact.test_environment import toy_env
 
@@ -16,7 +16,8 @@ IMAGE_TOL = 1e-5  # the same float32 arithmetic, compiled into different program
 def test_each_world_renders_as_the_single_environment(tmp_path):
     env = toy_env(tmp_path, view_dependence=0.3)
     renderer = WorldRenderer(env)
-    renderer.moving_capacity = 16  # far too small: the render must grow it, dropping nothing
+    # far too small: the render must grow every capacity, dropping nothing
+    renderer.capacities = WorldCapacities(moving=16, tiles=1, entries=1)
     rng = np.random.default_rng(4)
     placements, singles = [], []
     for _ in range(3):
@@ -39,6 +40,16 @@ def test_each_world_renders_as_the_single_environment(tmp_path):
     # the worlds differ, and the objects are in view
     assert float(np.abs(out.rgb[0, 0] - out.rgb[1, 0]).max()) > 0.1
     assert float(np.mean(out.alpha)) > 0.05
+    # only some tiles were recomposited, and the capacities hold what the worlds used
+    assert 1 < renderer.capacities.tiles < 12  # of the 4 × 3 tiles
+    # sized by counting before the first render: the same images without a retry
+    counted = WorldRenderer(env)
+    again = counted.render(np.stack(placements), [0, 1], max_images=4)
+    np.testing.assert_allclose(again.rgb, out.rgb, atol=IMAGE_TOL)
+    assert counted.retries == 0 and counted.capacities.tiles >= 1
+    # the reference that merges and composites every tile: the same images
+    whole = WorldRenderer(env, whole_images=True).render(np.stack(placements), [0, 1], max_images=4)
+    np.testing.assert_allclose(whole.rgb, out.rgb, atol=IMAGE_TOL)
     # the background's lists hold what its busiest camera needs, at most a fifth of them idle
     views, config = next(iter(renderer._views.values()))
     assert config.capacity == quarter_octave(int(np.max(views.needed)))

@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from kernels.composite_pallas import PallasSettings
 from kernels.gaussians import Gaussians, concatenate
 from kernels.raster import RasterConfig, rasterize
-from kernels.raster_merge import rasterize_over_static, static_view
+from kernels.raster_merge import rasterize_changed_tiles, rasterize_over_static, static_view
 from tests.kernels.test_composite_pallas import behind
 from tests.kernels.test_raster import camera, random_scene
 
@@ -75,3 +76,87 @@ def test_moving_overflow_is_reported():
     needed = int(fits.num_intersections - view.needed)
     assert not bool(fits.overflow) and needed > 8
     assert bool(cut.overflow) and int(cut.num_intersections) == int(fits.num_intersections)
+
+
+# --- only the changed tiles composited -------------------------------------------------------
+
+STRIP_WIDTH, STRIP_HEIGHT = 100, 70  # 7 × 5 tiles, the last column and row partial
+STRIP_CONFIGS = {
+    "jax": CONFIG,
+    "pallas": RasterConfig(capacity=1 << 11, compositor="pallas",
+                           pallas=PallasSettings(chunk=8, interpret=True)),
+}
+
+
+def _strip_full(config):
+    return jax.jit(lambda g, f, K, w2c: rasterize(
+        g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, background=jnp.ones(3) * 0.3, features=f,
+        config=config))
+
+
+def _strip_view(config):
+    return jax.jit(lambda g, f, K, w2c: static_view(g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT,
+                                                    features=f, config=config))
+
+
+def _strip_changed(config):
+    return jax.jit(lambda v, g, f, K, w2c, tiles, entries: rasterize_changed_tiles(
+        v, g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, moving_capacity=MOVING_CAPACITY,
+        tile_capacity=tiles, entry_capacity=entries, background=jnp.ones(3) * 0.3, features=f,
+        config=config), static_argnums=(5, 6))
+
+
+def strip_scene():
+    """A static set and a small moving set that reaches some of the tiles, not all."""
+    K, w2c = camera(STRIP_WIDTH, STRIP_HEIGHT)
+    g, feats = random_scene(seed=11, n=160)
+    static, moving = jax.tree.map(lambda x: x[:NUM_STATIC], g), jax.tree.map(lambda x: x[NUM_STATIC:], g)
+    keep = np.arange(moving.num)[::9]  # a few, made small: a handful of tiles
+    moving = jax.tree.map(lambda x: x[keep], moving)
+    moving = moving.replace(log_scales=moving.log_scales - 1.0)
+    # exact depth ties with static Gaussians
+    moving = moving.replace(means=moving.means.at[:2].set(static.means[20:22]))
+    return K, w2c, static, moving, feats[:NUM_STATIC], feats[NUM_STATIC:][keep]
+
+
+def test_changed_tiles_render_the_concatenation():
+    K, w2c, static, moving, f_static, f_moving = strip_scene()
+    num_tiles = 7 * 5
+    for name, config in STRIP_CONFIGS.items():
+        view = _strip_view(config)(static, f_static, K, w2c)
+        ref = _strip_full(config)(concatenate([static, moving]), jnp.concatenate([f_static, f_moving]), K, w2c)
+        got, use = _strip_changed(config)(view, moving, f_moving, K, w2c, num_tiles, 1 << 11)
+        assert 0 < int(use.tiles) < num_tiles, (name, int(use.tiles))
+        assert 0 < int(use.static_entries) < int(view.needed), name
+        for key in ("rgb", "depth", "alpha", "features", "radii"):
+            np.testing.assert_allclose(getattr(got, key), getattr(ref, key), atol=1e-5, err_msg=f"{name} {key}")
+        for key in ("num_visible", "num_intersections", "max_tile_intersections", "overflow"):
+            assert int(getattr(got, key)) == int(getattr(ref, key)), (name, key)
+        # capacities just large enough give the same image; the unchanged tiles are the static image
+        tight, _ = _strip_changed(config)(view, moving, f_moving, K, w2c, int(use.tiles), int(use.static_entries))
+        np.testing.assert_allclose(tight.rgb, got.rgb, atol=1e-6, err_msg=name)
+        assert not bool(tight.overflow)
+        alone = _strip_full(config)(static, f_static, K, w2c)
+        same = np.all(np.abs(np.asarray(got.rgb) - np.asarray(alone.rgb)) < 1e-6, axis=-1)
+        assert 0 < same.mean() < 1, name
+
+
+def test_changed_tiles_with_no_moving_gaussian_in_view():
+    K, w2c, static, moving, f_static, f_moving = strip_scene()
+    view = _strip_view(CONFIG)(static, f_static, K, w2c)
+    got, use = _strip_changed(CONFIG)(view, behind(moving, w2c), f_moving, K, w2c, 4, 64)
+    alone = _strip_full(CONFIG)(static, f_static, K, w2c)
+    assert int(use.tiles) == 0 and int(use.static_entries) == 0 and not bool(got.overflow)
+    np.testing.assert_allclose(got.rgb, alone.rgb, atol=1e-6)
+
+
+def test_changed_tile_overflow_is_reported():
+    K, w2c, static, moving, f_static, f_moving = strip_scene()
+    view = _strip_view(CONFIG)(static, f_static, K, w2c)
+    _, use = _strip_changed(CONFIG)(view, moving, f_moving, K, w2c, 35, 1 << 11)
+    tiles, entries = int(use.tiles), int(use.static_entries)
+    few_tiles, use_a = _strip_changed(CONFIG)(view, moving, f_moving, K, w2c, tiles - 1, 1 << 11)
+    few_entries, use_b = _strip_changed(CONFIG)(view, moving, f_moving, K, w2c, 35, entries - 1)
+    assert bool(few_tiles.overflow) and bool(few_entries.overflow)
+    # what was needed is still counted, so the caller can grow the capacity that was outgrown
+    assert (int(use_a.tiles), int(use_b.static_entries)) == (tiles, entries)
