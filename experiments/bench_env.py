@@ -30,6 +30,8 @@ import numpy as np
 from experiments.profiling import kernel_summary
 from experiments.report import emit
 from experiments.timing import timed
+from kernels.composite_pallas import PallasSettings
+from kernels.raster import RasterConfig
 from phirie_jax.interact.batched import BatchedEnvironment, WorldRenderer
 from phirie_jax.interact.environment import Environment
 
@@ -46,7 +48,8 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
 
 def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
                   collision: str, max_images: int, loop: bool = True, trace: Path | None = None,
-                  pixels_only: bool = False, whole_images: bool = False) -> dict:
+                  pixels_only: bool = False, whole_images: bool = False,
+                  compositor_settings: tuple[tuple[int, int], ...] = ()) -> dict:
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
@@ -78,6 +81,15 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     result["max_abs_rgb_diff_world0_vs_single_uint8"] = round(float(np.max(np.abs(world0 - single))), 4)
     renderer = batch._renderer
     result["changed_tiles"] = {"capacities": dataclasses.asdict(renderer.capacities), "retries": renderer.retries}
+    for chunk, warps in compositor_settings:  # the changed-tile render with other Pallas settings
+        config = RasterConfig(pallas=PallasSettings(chunk=chunk, num_warps=warps))
+        other = WorldRenderer(env, config=config, devices=batch.mesh.devices)
+        placements = batch.placements()
+        other_first, other_s = timed(lambda: other.render(placements, cameras, max_images=max_images,
+                                                          pixels="uint8"), repeats)
+        result.setdefault("compositor_settings", []).append(
+            {"chunk": chunk, "num_warps": warps, "uint8_frames_per_s": round(frames / other_s, 2),
+             "compile_s": round(other_first - other_s, 2), "speedup_over_default": round(pixels_s / other_s, 3)})
     if whole_images:  # the reference: every tile of every image merged and composited, same run
         whole = WorldRenderer(env, devices=batch.mesh.devices, whole_images=True)
         placements = batch.placements()
@@ -140,6 +152,8 @@ def main() -> None:
                         help="time only the uint8 frames a policy reads, not the float32 RasterOutput as well")
     parser.add_argument("--whole-images", action="store_true",
                         help="also time the uint8 render that merges and composites every tile (the reference)")
+    parser.add_argument("--compositor-settings", nargs="*", default=[], metavar="CHUNK:WARPS",
+                        help="also time the uint8 render with these Pallas compositor settings")
     parser.add_argument("--no-loop", action="store_true",
                         help="skip the single-environment loop baseline (minutes at thousands of frames)")
     args = parser.parse_args()
@@ -162,7 +176,9 @@ def main() -> None:
         result["batched"].append(bench_batched(env, worlds, cameras, args.steps, args.repeats,
                                                args.collision, args.max_images, loop=not args.no_loop,
                                                trace=args.trace if worlds == max(args.worlds) else None,
-                                               pixels_only=args.pixels_only, whole_images=args.whole_images))
+                                               pixels_only=args.pixels_only, whole_images=args.whole_images,
+                                               compositor_settings=tuple(tuple(int(v) for v in c.split(":"))
+                                                                         for c in args.compositor_settings)))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
     emit(result, args.out)
 

@@ -76,13 +76,14 @@ def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height:
 
 
 def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: TileLists, moving_depths,
-                     offset: int) -> TileLists:
+                     offset: int, longest_static_run: int | None = None) -> TileLists:
     """Merge two (tile, depth)-sorted lists into one; static first where depths are equal.
 
     static: lists of capacity Cs with static_depths (Cs,) sorted entry depths; moving: lists of
     capacity Cm with moving_depths (Cm,) (the entries in its tiles' runs come first); ``offset``
-    is added to the moving Gaussian ids (their rows follow the static rows). Returns lists of
-    capacity Cs + Cm.
+    is added to the moving Gaussian ids (their rows follow the static rows);
+    ``longest_static_run``, when given, bounds every static tile's entry count (the bisection
+    then takes its bit length in steps, not Cs's). Returns lists of capacity Cs + Cm.
     """
     cs = static.gaussian_ids.shape[0]
     cm = moving.gaussian_ids.shape[0]
@@ -104,7 +105,7 @@ def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: T
         right = (mid < hi_) & (static_depths[jnp.minimum(mid, cs - 1)] <= moving_depths)
         return jnp.where(right, mid + 1, lo_), jnp.where(right, hi_, mid)
 
-    steps = max(1, int(cs).bit_length())
+    steps = max(1, int(cs if longest_static_run is None else min(cs, longest_static_run)).bit_length())
     rank, _ = jax.lax.fori_loop(0, steps, bisect, (lo, hi))
     rank = jnp.where(valid, rank, cs)
     # A static entry moves back by the number of moving entries ranked at or before it.
@@ -213,14 +214,15 @@ def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_p
 
 def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_camera, *, width: int,
                             height: int, moving_capacity: int, tile_capacity: int, entry_capacity: int,
-                            background=None, features=None, config: RasterConfig = RasterConfig()
-                            ) -> tuple[RasterOutput, TileUse]:
+                            longest_static_run: int | None = None, background=None, features=None,
+                            config: RasterConfig = RasterConfig()) -> tuple[RasterOutput, TileUse]:
     """``rasterize_over_static``'s image, compositing only the tiles the moving set reaches.
 
     view: ``static_view`` of the same camera K (3, 3), world_to_camera (4, 4) and config;
     moving (Nm Gaussians) with features (Nm, F) or None; background (3,) or None.
     Capacities: ``moving_capacity`` moving tile intersections, ``tile_capacity`` changed
-    tiles, ``entry_capacity`` static entries in them. Returns the ``RasterOutput`` (the same
+    tiles, ``entry_capacity`` static entries in them; ``longest_static_run``: at least the
+    view's longest tile list, or None (``merge_tile_lists``). Returns the ``RasterOutput`` (the same
     fields as ``rasterize_over_static``; ``steps`` counts the changed tiles' compositing, and
     ``overflow`` also says a changed-tile capacity was outgrown) and the ``TileUse``.
     """
@@ -241,7 +243,8 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
     in_runs = jnp.minimum(lists.tile_start[-1] + lists.tile_count[-1], moving_capacity)
     moving_lists = TileLists(lists.gaussian_ids, jnp.where(used, lists.tile_start[tiles], in_runs),
                              jnp.where(used, lists.tile_count[tiles], 0))
-    merged = merge_tile_lists(strip, static, static_depths, moving_lists, depths, view.params.shape[0])
+    merged = merge_tile_lists(strip, static, static_depths, moving_lists, depths, view.params.shape[0],
+                              longest_static_run)
     rows = _strip_rows(grid, merged, tiles, view.params, composite_params(proj, features, config.depth))
     entries = TileLists(jnp.arange(rows.shape[0], dtype=jnp.int32), merged.tile_start, merged.tile_count)
     acc, trans, steps, too_long = composite_rows(strip, config, rows, entries)

@@ -348,6 +348,7 @@ class WorldCapacities:
     moving: int    # tile intersections of the moving Gaussians
     tiles: int     # tiles they reach
     entries: int   # background entries in those tiles
+    longest: int | None = None  # the background's longest tile list (its cameras'), bounds the merge's bisection
 
     def grown(self, use: TileUse, num_tiles: int) -> WorldCapacities:
         """Room for the largest use (``TileUse`` of every image); unchanged where it fitted. The
@@ -358,7 +359,8 @@ class WorldCapacities:
         return WorldCapacities(
             self.moving if moving <= self.moving else max(2 * self.moving, next_power_of_two(moving)),
             self.tiles if tiles <= self.tiles else min(num_tiles, quarter_octave(tiles + tiles // 4)),
-            self.entries if entries <= self.entries else quarter_octave(entries + entries // 4))
+            self.entries if entries <= self.entries else quarter_octave(entries + entries // 4),
+            self.longest)
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "config", "capacities", "mesh", "pixels",
@@ -380,7 +382,7 @@ def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks,
             return rasterize_changed_tiles(
                 view, moved, K, W, width=width, height=height, moving_capacity=capacities.moving,
                 tile_capacity=capacities.tiles, entry_capacity=capacities.entries,
-                background=background, config=config)
+                longest_static_run=capacities.longest, background=background, config=config)
         out = rasterize_over_static(view, moved, K, W, width=width, height=height,
                                     moving_capacity=capacities.moving, background=background, config=config)
         zero = jnp.zeros((), jnp.int32)
@@ -443,12 +445,12 @@ class WorldRenderer:
         self.capacities = WorldCapacities(
             moving=next_power_of_two(max(INITIAL_CAPACITY // 16, INTERSECTIONS_GUESS * attached.num)),
             tiles=0, entries=0)  # 0: every capacity counted before the first render
-        self._views: dict[tuple, tuple[StaticView, RasterConfig]] = {}
+        self._views: dict[tuple, tuple[StaticView, RasterConfig, int]] = {}
         self.retries = 0
 
     def views(self, cameras: list[Camera], dtype=np.float32, depth: bool = True):
         """Static views of the background for these cameras (cached): (views, config, Ks,
-        world_to_cameras, width, height). ``depth`` off: colour-only views (one channel less
+        world_to_cameras, width, height, the longest tile list of any of them). ``depth`` off: colour-only views (one channel less
         to composite; what ``render(..., pixels=...)`` uses)."""
         arrays = [camera_arrays(c, None, dtype) for c in cameras]
         sizes = {(a[2], a[3]) for a in arrays}
@@ -476,10 +478,10 @@ class WorldRenderer:
                 # fills, and every world's merge and composite walks all of them.
                 config = dataclasses.replace(config, capacity=quarter_octave(needed))
                 views = _static_views(background, Ks, w2cs, width=width, height=height, config=config)
-            self._views[key] = (self.mesh.put_replicated(views), config)
-        views, config = self._views[key]
+            self._views[key] = (self.mesh.put_replicated(views), config, int(jnp.max(views.lists.tile_count)))
+        views, config, longest = self._views[key]
         Ks, w2cs = self.mesh.put_replicated((Ks, w2cs))
-        return views, config, Ks, w2cs, width, height
+        return views, config, Ks, w2cs, width, height, longest
 
     def _count_capacities(self, views: StaticView, placements, Ks, w2cs, width: int, height: int,
                           config: RasterConfig, num_tiles: int):
@@ -510,7 +512,8 @@ class WorldRenderer:
         if pixels is not None and pixels not in PIXEL_TYPES:
             raise ValueError(f"pixels: {pixels!r} (expected one of {', '.join(PIXEL_TYPES)}, or None)")
         cams = [self.env.camera(c) for c in cameras]
-        views, config, Ks, w2cs, width, height = self.views(cams, depth=pixels is None)
+        views, config, Ks, w2cs, width, height, longest = self.views(cams, depth=pixels is None)
+        self.capacities = dataclasses.replace(self.capacities, longest=longest)
         placements = jnp.asarray(placements, jnp.float32)
         if placements.shape[1] == 0:  # no body: the padding Gaussian's placement
             placements = jnp.broadcast_to(jnp.eye(4), (placements.shape[0], 1, 4, 4))

@@ -51,7 +51,7 @@ def test_each_world_renders_as_the_single_environment(tmp_path):
     whole = WorldRenderer(env, whole_images=True).render(np.stack(placements), [0, 1], max_images=4)
     np.testing.assert_allclose(whole.rgb, out.rgb, atol=IMAGE_TOL)
     # the background's lists hold what its busiest camera needs, at most a fifth of them idle
-    views, config = next(iter(renderer._views.values()))
+    views, config, _ = next(iter(renderer._views.values()))
     assert config.capacity == quarter_octave(int(np.max(views.needed)))
 
 

@@ -100,10 +100,10 @@ def _strip_view(config):
 
 
 def _strip_changed(config):
-    return jax.jit(lambda v, g, f, K, w2c, tiles, entries: rasterize_changed_tiles(
+    return jax.jit(lambda v, g, f, K, w2c, tiles, entries, longest=None: rasterize_changed_tiles(
         v, g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, moving_capacity=MOVING_CAPACITY,
-        tile_capacity=tiles, entry_capacity=entries, background=jnp.ones(3) * 0.3, features=f,
-        config=config), static_argnums=(5, 6))
+        tile_capacity=tiles, entry_capacity=entries, longest_static_run=longest,
+        background=jnp.ones(3) * 0.3, features=f, config=config), static_argnums=(5, 6, 7))
 
 
 def strip_scene():
@@ -136,6 +136,11 @@ def test_changed_tiles_render_the_concatenation():
         tight, _ = _strip_changed(config)(view, moving, f_moving, K, w2c, int(use.tiles), int(use.static_entries))
         np.testing.assert_allclose(tight.rgb, got.rgb, atol=1e-6, err_msg=name)
         assert not bool(tight.overflow)
+        # the bisection bounded by the longest static list (fewer steps): the same image
+        longest = int(np.max(view.lists.tile_count))
+        assert longest.bit_length() < view.depths.shape[0].bit_length()
+        bounded, _ = _strip_changed(config)(view, moving, f_moving, K, w2c, num_tiles, 1 << 11, longest)
+        np.testing.assert_array_equal(bounded.rgb, got.rgb, err_msg=name)
         alone = _strip_full(config)(static, f_static, K, w2c)
         same = np.all(np.abs(np.asarray(got.rgb) - np.asarray(alone.rgb)) < 1e-6, axis=-1)
         assert 0 < same.mean() < 1, name
