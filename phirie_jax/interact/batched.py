@@ -483,13 +483,17 @@ class WorldRenderer:
         Ks, w2cs = self.mesh.put_replicated((Ks, w2cs))
         return views, config, Ks, w2cs, width, height, longest
 
-    def _count_capacities(self, views: StaticView, placements, Ks, w2cs, width: int, height: int,
+    def _count_capacities(self, views: StaticView, chunks: list, Ks, w2cs, width: int, height: int,
                           config: RasterConfig, num_tiles: int):
-        """Size every list by what the worlds ``placements`` use (``_tile_use``), with a quarter
-        to spare, as objects move: before the first render, so that it compiles once."""
+        """Size every list by the most any world of ``chunks`` (placements a render call each)
+        uses (``_tile_use``), with a quarter to spare, as objects move: before the first render,
+        so that it compiles once."""
         while True:
-            use = _tile_use(views, self.attached, self.body, placements, Ks, w2cs, width=width, height=height,
-                            config=config, moving_capacity=self.capacities.moving, mesh=self.mesh)
+            uses = [_tile_use(views, self.attached, self.body, chunk, Ks, w2cs, width=width, height=height,
+                              config=config, moving_capacity=self.capacities.moving, mesh=self.mesh)
+                    for chunk in chunks]
+            use = TileUse(*(jnp.stack([jnp.max(getattr(u, f)) for u in uses])
+                            for f in ("moving", "tiles", "static_entries")))
             moving = int(jnp.max(use.moving))
             if moving <= self.capacities.moving:
                 break
@@ -521,22 +525,21 @@ class WorldRenderer:
         num_tiles = TileGrid(width, height, config.tile_size).num_tiles
         per = self.mesh.size * max(1, min(-(-n // self.mesh.size), max_images // c))
         bg = self.mesh.put_replicated(jnp.asarray(background, jnp.float32))
-        chunks = []
-        for start in range(0, n, per):
-            worlds = np.minimum(np.arange(start, start + per), n - 1)
-            chunk = self.mesh.put_rows(placements[worlds])
-            if not self.capacities.tiles:
-                self._count_capacities(views, chunk, Ks, w2cs, width, height, config, num_tiles)
-            while True:
-                out, use = _render_worlds(views, self.attached, self.body, chunk, Ks, w2cs, bg,
-                                          width=width, height=height, config=config,
-                                          capacities=self.capacities, mesh=self.mesh, pixels=pixels,
-                                          whole_images=self.whole_images)
-                grown = self.capacities.grown(use, num_tiles)
-                if grown == self.capacities:
-                    break
-                self.retries += 1
-                self.capacities = grown
-            keep = min(per, n - start)
-            chunks.append(jax.tree.map(lambda x, keep=keep: x[:keep], out))
+        calls = [self.mesh.put_rows(placements[np.minimum(np.arange(start, start + per), n - 1)])
+                 for start in range(0, n, per)]
+        if not self.capacities.tiles:
+            self._count_capacities(views, calls, Ks, w2cs, width, height, config, num_tiles)
+        while True:  # every call dispatched before any is checked: the device never waits on the host
+            outs = [_render_worlds(views, self.attached, self.body, chunk, Ks, w2cs, bg, width=width,
+                                   height=height, config=config, capacities=self.capacities, mesh=self.mesh,
+                                   pixels=pixels, whole_images=self.whole_images) for chunk in calls]
+            grown = self.capacities
+            for _, use in outs:
+                grown = grown.grown(use, num_tiles)
+            if grown == self.capacities:
+                break
+            self.retries += 1
+            self.capacities = grown
+        chunks = [jax.tree.map(lambda x, keep=min(per, n - start): x[:keep], out)
+                  for start, (out, _) in zip(range(0, n, per), outs)]
         return jax.tree.map(lambda *x: jnp.concatenate(x), *chunks) if len(chunks) > 1 else chunks[0]
