@@ -142,6 +142,22 @@ def pad_rows(tree: Any, size: int) -> Any:
     return jax.tree.map(grow, tree)
 
 
+def map_in_batches(fn: Callable, rows: Any, batch_size: int) -> Any:
+    """``fn`` on every row of ``rows`` (a pytree of arrays with a common leading axis N),
+    ``batch_size`` rows vmapped at a time in a loop, the last N mod ``batch_size`` vmapped
+    after it: ``jax.lax.map(fn, rows, batch_size=...)``, but also for outputs with an empty
+    axis (lax.map reshapes with -1, which cannot infer a size next to a zero)."""
+    n = jax.tree.leaves(rows)[0].shape[0]
+    size = max(1, min(int(batch_size), n))
+    steps, rest = divmod(n, size)
+    head = jax.tree.map(lambda x: x[: steps * size].reshape((steps, size) + x.shape[1:]), rows)
+    ys = jax.tree.map(lambda y: y.reshape((steps * size,) + y.shape[2:]), jax.lax.map(jax.vmap(fn), head))
+    if rest:
+        tail = jax.vmap(fn)(jax.tree.map(lambda x: x[steps * size:], rows))
+        ys = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), ys, tail)
+    return ys
+
+
 def map_rows(fn: Callable, shared: Any, rows: Any, batch_size: int, mesh: BatchMesh | None) -> Any:
     """``fn(shared, row)`` for every row of ``rows`` (a pytree of arrays with a common leading
     axis), ``batch_size`` rows vmapped at a time (``jax.lax.map``). With a mesh the rows are
@@ -149,11 +165,9 @@ def map_rows(fn: Callable, shared: Any, rows: Any, batch_size: int, mesh: BatchM
     the pad is cut off the outputs. Call it inside ``jax.jit``."""
     n = jax.tree.leaves(rows)[0].shape[0]
     if mesh is None:
-        return jax.lax.map(lambda r: fn(shared, r), rows, batch_size=max(1, min(batch_size, n)))
+        return map_in_batches(lambda r: fn(shared, r), rows, batch_size)
     size = mesh.padded(n)
-    per = size // mesh.size
-    local = mesh.map(lambda s, r: jax.lax.map(lambda x: fn(s, x), r, batch_size=max(1, min(batch_size, per))),
-                     (False, True))
+    local = mesh.map(lambda s, r: map_in_batches(lambda x: fn(s, x), r, batch_size), (False, True))
     return jax.tree.map(lambda x: x[:n], local(shared, pad_rows(rows, size)))
 
 

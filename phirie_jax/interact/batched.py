@@ -31,7 +31,7 @@ mesh (``kernels.sharding.BatchMesh``): their count is padded to a multiple of th
 pad worlds are copies of world 0 that are stepped and never reported), the state is split along
 the worlds axis with a ``NamedSharding``, the model and the background's tile lists are
 replicated, and ``step`` and ``render`` are each one program in which every device runs its own
-worlds. ``render`` draws ``max_images`` images per device and call.
+worlds. ``render`` draws each device's worlds ``max_images`` images at a time, in one program.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ from kernels.raster_merge import (
     rasterize_over_static,
     static_view,
 )
-from kernels.sharding import BatchMesh, pad_rows
+from kernels.sharding import BatchMesh, map_rows, pad_rows
 from phirie_jax.construct.physics.warp_batch import warp_devices
 from phirie_jax.interact.environment import Environment, compose_scene, load_spec
 from phirie_jax.interact.mjx_model import CollisionModel, hull_collision_spec, multi_part
@@ -71,7 +71,7 @@ from phirie_jax.render import (
 from phirie_jax.rotations import pose_matrix
 from phirie_jax.types import Camera
 
-MAX_IMAGES = 256  # images per rasterization call and device: bounds the merged lists' memory
+MAX_IMAGES = 256  # images rasterized at once per device: bounds the merged lists' memory
 PIXEL_TYPES = {"uint8": jnp.uint8, "bfloat16": jnp.bfloat16, "float32": jnp.float32}
 
 
@@ -364,14 +364,16 @@ class WorldCapacities:
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "config", "capacities", "mesh", "pixels",
-                                             "whole_images"))
+                                             "whole_images", "worlds_per_step"))
 def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks, world_to_cameras,
                    background, *, width: int, height: int, config: RasterConfig,
-                   capacities: WorldCapacities, mesh: BatchMesh, pixels: str | None = None,
-                   whole_images: bool = False) -> tuple[RasterOutput | jax.Array, TileUse]:
+                   capacities: WorldCapacities, mesh: BatchMesh, worlds_per_step: int,
+                   pixels: str | None = None, whole_images: bool = False
+                   ) -> tuple[RasterOutput | jax.Array, TileUse]:
     """Images (W, C) of W worlds: attached Gaussians (Nm) with body (Nm,) int32, placements
-    (W, K, 4, 4) canonical → world per body (W a multiple of the mesh's devices, each rendering
-    its own worlds), views of C cameras (Ks (C, 3, 3), world_to_cameras (C, 4, 4)), background (3,).
+    (W, K, 4, 4) canonical → world per body, views of C cameras (Ks (C, 3, 3), world_to_cameras
+    (C, 4, 4)), background (3,). The worlds are spread over the mesh's devices, each rendering its
+    own ``worlds_per_step`` at a time in one loop (``kernels.sharding.map_rows``).
     A ``RasterOutput``, or with ``pixels`` (``as_pixels``) only the colour in that type,
     (W, C, H, W, 3), nothing else kept in device memory; and each image's ``TileUse`` (W, C).
     ``whole_images``: every tile merged and composited (``rasterize_over_static``; the use then
@@ -388,36 +390,33 @@ def _render_worlds(views: StaticView, attached: Gaussians, body, placements, Ks,
         zero = jnp.zeros((), jnp.int32)
         return out, TileUse(out.num_intersections - view.needed, zero, zero)
 
-    def worlds(views, attached, body, placements, Ks, world_to_cameras, background):
-        def one_world(placement):
-            moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
-            out, use = jax.vmap(lambda view, K, W: one_image(view, moved, K, W, background))(
-                views, Ks, world_to_cameras)
-            return (out if pixels is None else as_pixels(out.rgb, pixels)), use
+    def one_world(shared, placement):
+        views, attached, body, Ks, world_to_cameras, background = shared
+        moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
+        out, use = jax.vmap(lambda view, K, W: one_image(view, moved, K, W, background))(
+            views, Ks, world_to_cameras)
+        return (out if pixels is None else as_pixels(out.rgb, pixels)), use
 
-        return jax.vmap(one_world)(placements)
-
-    return mesh.map(worlds, (False, False, False, True, False, False, False))(
-        views, attached, body, placements, Ks, world_to_cameras, background)
+    return map_rows(one_world, (views, attached, body, Ks, world_to_cameras, background), placements,
+                    worlds_per_step, mesh)
 
 
-@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity", "mesh"))
+@functools.partial(jax.jit, static_argnames=("width", "height", "config", "moving_capacity", "mesh",
+                                             "worlds_per_step"))
 def _tile_use(views: StaticView, attached: Gaussians, body, placements, Ks, world_to_cameras, *,
-              width: int, height: int, config: RasterConfig, moving_capacity: int, mesh: BatchMesh) -> TileUse:
+              width: int, height: int, config: RasterConfig, moving_capacity: int, mesh: BatchMesh,
+              worlds_per_step: int) -> TileUse:
     """``_render_worlds``' ``TileUse`` (W, C) without rendering (``changed_tile_use``): sizes the
     first render's capacities."""
 
-    def worlds(views, attached, body, placements, Ks, world_to_cameras):
-        def one_world(placement):
-            moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
-            return jax.vmap(lambda view, K, W: changed_tile_use(
-                view, moved, K, W, width=width, height=height, moving_capacity=moving_capacity,
-                config=config))(views, Ks, world_to_cameras)
+    def one_world(shared, placement):
+        views, attached, body, Ks, world_to_cameras = shared
+        moved = transform_bodies(attached, Sim3.from_matrix(placement), body)
+        return jax.vmap(lambda view, K, W: changed_tile_use(
+            view, moved, K, W, width=width, height=height, moving_capacity=moving_capacity,
+            config=config))(views, Ks, world_to_cameras)
 
-        return jax.vmap(one_world)(placements)
-
-    return mesh.map(worlds, (False, False, False, True, False, False))(
-        views, attached, body, placements, Ks, world_to_cameras)
+    return map_rows(one_world, (views, attached, body, Ks, world_to_cameras), placements, worlds_per_step, mesh)
 
 
 class WorldRenderer:
@@ -483,17 +482,14 @@ class WorldRenderer:
         Ks, w2cs = self.mesh.put_replicated((Ks, w2cs))
         return views, config, Ks, w2cs, width, height, longest
 
-    def _count_capacities(self, views: StaticView, chunks: list, Ks, w2cs, width: int, height: int,
-                          config: RasterConfig, num_tiles: int):
-        """Size every list by the most any world of ``chunks`` (placements a render call each)
-        uses (``_tile_use``), with a quarter to spare, as objects move: before the first render,
-        so that it compiles once."""
+    def _count_capacities(self, views: StaticView, placements, Ks, w2cs, width: int, height: int,
+                          config: RasterConfig, num_tiles: int, worlds_per_step: int):
+        """Size every list by the most any world of ``placements`` uses (``_tile_use``), with a
+        quarter to spare, as objects move: before the first render, so that it compiles once."""
         while True:
-            uses = [_tile_use(views, self.attached, self.body, chunk, Ks, w2cs, width=width, height=height,
-                              config=config, moving_capacity=self.capacities.moving, mesh=self.mesh)
-                    for chunk in chunks]
-            use = TileUse(*(jnp.stack([jnp.max(getattr(u, f)) for u in uses])
-                            for f in ("moving", "tiles", "static_entries")))
+            use = _tile_use(views, self.attached, self.body, placements, Ks, w2cs, width=width, height=height,
+                            config=config, moving_capacity=self.capacities.moving, mesh=self.mesh,
+                            worlds_per_step=worlds_per_step)
             moving = int(jnp.max(use.moving))
             if moving <= self.capacities.moving:
                 break
@@ -507,8 +503,9 @@ class WorldRenderer:
     def render(self, placements, cameras: list[Camera | int], background=(0.0, 0.0, 0.0),
                max_images: int = MAX_IMAGES, pixels: str | None = None) -> RasterOutput | jax.Array:
         """placements (N, K, 4, 4) canonical → world of every body in N worlds; outputs with
-        leading (N, C) axes. Each device renders ``max_images // C`` worlds a call (the last
-        call padded to the same size, so one compiled program serves every call).
+        leading (N, C) axes. One program renders them all: each device loops over its own worlds,
+        ``max_images // C`` at a time (one compiled program per world count; the outputs need
+        no concatenation).
 
         ``pixels`` ("uint8", "bfloat16" or "float32"): only the colour, (N, C, H, W, 3) in that
         type, made inside the rendering program and left on the device(s) (a policy's input);
@@ -521,25 +518,20 @@ class WorldRenderer:
         placements = jnp.asarray(placements, jnp.float32)
         if placements.shape[1] == 0:  # no body: the padding Gaussian's placement
             placements = jnp.broadcast_to(jnp.eye(4), (placements.shape[0], 1, 4, 4))
-        n, c = placements.shape[0], len(cams)
         num_tiles = TileGrid(width, height, config.tile_size).num_tiles
-        per = self.mesh.size * max(1, min(-(-n // self.mesh.size), max_images // c))
-        bg = self.mesh.put_replicated(jnp.asarray(background, jnp.float32))
-        calls = [self.mesh.put_rows(placements[np.minimum(np.arange(start, start + per), n - 1)])
-                 for start in range(0, n, per)]
+        per_step = max(1, max_images // len(cams))
+        n = placements.shape[0]
+        placements = self.mesh.put_rows(pad_rows(placements, self.mesh.padded(n)))
         if not self.capacities.tiles:
-            self._count_capacities(views, calls, Ks, w2cs, width, height, config, num_tiles)
-        while True:  # every call dispatched before any is checked: the device never waits on the host
-            outs = [_render_worlds(views, self.attached, self.body, chunk, Ks, w2cs, bg, width=width,
-                                   height=height, config=config, capacities=self.capacities, mesh=self.mesh,
-                                   pixels=pixels, whole_images=self.whole_images) for chunk in calls]
-            grown = self.capacities
-            for _, use in outs:
-                grown = grown.grown(use, num_tiles)
+            self._count_capacities(views, placements, Ks, w2cs, width, height, config, num_tiles, per_step)
+        bg = self.mesh.put_replicated(jnp.asarray(background, jnp.float32))
+        while True:
+            out, use = _render_worlds(views, self.attached, self.body, placements, Ks, w2cs, bg, width=width,
+                                      height=height, config=config, capacities=self.capacities, mesh=self.mesh,
+                                      worlds_per_step=per_step, pixels=pixels, whole_images=self.whole_images)
+            grown = self.capacities.grown(use, num_tiles)
             if grown == self.capacities:
                 break
             self.retries += 1
             self.capacities = grown
-        chunks = [jax.tree.map(lambda x, keep=min(per, n - start): x[:keep], out)
-                  for start, (out, _) in zip(range(0, n, per), outs)]
-        return jax.tree.map(lambda *x: jnp.concatenate(x), *chunks) if len(chunks) > 1 else chunks[0]
+        return jax.tree.map(lambda x: x[:n], out)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from kernels.sharding import BatchMesh, map_rows, pad_rows, resolve_devices, split
+from kernels.sharding import BatchMesh, map_in_batches, map_rows, pad_rows, resolve_devices, split
 
 
 def test_devices_are_resolved_from_none_a_count_or_a_list():
@@ -71,6 +71,19 @@ def test_map_rows_on_a_mesh_of_one_is_lax_map_and_a_new_mesh_reuses_the_program(
     program(jnp.float32(0.3), xs, BatchMesh.over(1))          # an equal mesh: the same program
     assert len(traces) == count
     assert BatchMesh.over(1) == BatchMesh.over([jax.devices()[0]])
+
+
+def test_map_in_batches_is_vmap_with_a_remainder_and_empty_outputs():
+    def row(x):
+        return jnp.cumsum(x) * 2.0, jnp.zeros((2, 0)), x[:1]
+
+    xs = jnp.linspace(0.0, 3.0, 27).reshape(9, 3)
+    ref = jax.vmap(row)(xs)
+    for size in (1, 2, 4, 9, 20):  # remainders 0, 1, 1, 0 and one batch larger than the rows
+        got = jax.jit(lambda xs, size=size: map_in_batches(row, xs, size))(xs)
+        for a, b in zip(got, ref, strict=True):
+            assert a.shape == b.shape
+            np.testing.assert_array_equal(a, b)
 
 
 class _FakeGpu:
