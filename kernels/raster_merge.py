@@ -50,7 +50,7 @@ class StaticView:
     needed: jax.Array       # () int32 tile intersections needed (> Cs: lists incomplete)
     radii: jax.Array        # (Ns,) 3σ screen radius, 0 where culled
     num_visible: jax.Array  # () int32
-    acc: jax.Array          # (NT, P, D − 6) the static set alone composited, per tile pixel
+    acc: jax.Array          # (NT, P, Dc) the static set alone composited per tile pixel (Dc = D − 6)
     trans: jax.Array        # (NT, P) its transmittance
 
 
@@ -126,8 +126,8 @@ def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: T
 
 def _moving_lists(moving: Gaussians, K, world_to_camera, grid: TileGrid, moving_capacity: int,
                   config: RasterConfig):
-    """The moving set projected and binned: (projection, lists, needed () int32, entry depths
-    (Cm,), +inf past the lists)."""
+    """The moving set projected and binned for camera K (3, 3), world_to_camera (4, 4):
+    (projection, lists, needed () int32, entry depths (Cm,), +inf past the lists)."""
     proj = project_gaussians(moving, K, world_to_camera, width=grid.width, height=grid.height,
                              tile_size=config.tile_size, near=config.near)
     lists, needed = bin_gaussians(jax.lax.stop_gradient(proj), grid, moving_capacity)
@@ -182,7 +182,7 @@ class TileUse:
 def _changed_static(static: TileLists, static_depths, tiles, used, entry_capacity: int):
     """The static lists of the changed tiles, one after another: compact lists over the D
     tiles (D,) int32 (used (D,) bool; unused tiles get empty lists) in ``entry_capacity``
-    slots, their entry depths, and the entries needed () int32."""
+    slots, their entry depths (from static_depths (Cs,)), and the entries needed () int32."""
     cs = static.gaussian_ids.shape[0]
     count = jnp.where(used, static.tile_count[tiles], 0)
     ends = jnp.cumsum(count, dtype=jnp.int32)
@@ -202,7 +202,8 @@ def _changed_static(static: TileLists, static_depths, tiles, used, entry_capacit
 def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_params):
     """One parameter row per merged entry (ids ≥ Ns are moving rows), its centre shifted from
     the entry's image tile to its place in the strip: compact tile k is the strip's k-th tile
-    (strip x = k·T, y = 0); tiles (D,) int32 the image tile of each compact tile."""
+    (strip x = k·T, y = 0); tiles (D,) int32 the image tile of each compact tile;
+    static_params (Ns, R), moving_params (Nm, R): rows of ``kernels.composite``."""
     ns, nm = static_params.shape[0], moving_params.shape[0]
     entries = lists.gaussian_ids.shape[0]
     ids = lists.gaussian_ids
@@ -277,7 +278,8 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
 
 def changed_tile_use(view: StaticView, moving: Gaussians, K, world_to_camera, *, width: int, height: int,
                      moving_capacity: int, config: RasterConfig = RasterConfig()) -> TileUse:
-    """The ``TileUse`` of ``rasterize_changed_tiles`` with the same arguments, without rendering:
+    """The ``TileUse`` of ``rasterize_changed_tiles`` with the same arguments (K (3, 3),
+    world_to_camera (4, 4)), without rendering:
     the moving set's tile intersections, the tiles they reach (counted from the entries that fit
     ``moving_capacity``) and the static entries in those tiles."""
     grid = TileGrid(width, height, config.tile_size)
