@@ -16,7 +16,8 @@ stable sort breaks them (static first, then by index).
 Gaussian reaches looks as the static set alone makes it, which ``static_view`` composites
 once (``StaticView.acc``, ``StaticView.trans``). Per render only the changed tiles — those
 in the moving set's lists — have their static lists gathered, merged with the moving
-entries and composited, laid side by side in a compact strip of tiles; their pixels then
+entries and composited, packed into a compact block of tiles as wide as the image (each
+tile moves up and left, so its coordinates stay in the image's range); their pixels then
 replace the static ones.
 """
 
@@ -52,6 +53,7 @@ class StaticView:
     num_visible: jax.Array  # () int32
     acc: jax.Array          # (NT, P, Dc) the static set alone composited per tile pixel (Dc = D − 6)
     trans: jax.Array        # (NT, P) its transmittance
+    too_long: jax.Array     # () bool a tile list longer than the autodiff scan covers (acc incomplete)
 
 
 def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height: int,
@@ -70,9 +72,9 @@ def static_view(gaussians: Gaussians, K, world_to_camera, *, width: int, height:
     slot = jnp.arange(config.capacity, dtype=jnp.int32)
     depths = jnp.where(slot < needed, proj.depths[lists.gaussian_ids], jnp.inf)
     params = composite_params(proj, features, config.depth)
-    acc, trans, _, _ = composite_rows(grid, config, params, lists)
+    acc, trans, _, too_long = composite_rows(grid, config, params, lists)
     return StaticView(params, lists, depths, needed, proj.radii, jnp.sum(proj.visible, dtype=jnp.int32),
-                      acc, trans)
+                      acc, trans, too_long)
 
 
 def _run_of(starts, size: int):
@@ -201,8 +203,9 @@ def _changed_static(static: TileLists, static_depths, tiles, used, entry_capacit
 
 def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_params):
     """One parameter row per merged entry (ids ≥ Ns are moving rows), its centre shifted from
-    the entry's image tile to its place in the strip: compact tile k is the strip's k-th tile
-    (strip x = k·T, y = 0); tiles (D,) int32 the image tile of each compact tile;
+    the entry's image tile to its place in the strip: compact tile k sits at column k mod TX,
+    row k div TX of a strip as wide as the image (TX tiles); tiles (D,) int32 the image tile of
+    each compact tile (ascending, so k ≤ its tile: the shifted centres stay in the image's range);
     static_params (Ns, R), moving_params (Nm, R): rows of ``kernels.composite``."""
     ns, nm = static_params.shape[0], moving_params.shape[0]
     entries = lists.gaussian_ids.shape[0]
@@ -212,7 +215,8 @@ def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_p
     compact = _run_of(lists.tile_start, entries)
     image_tile = tiles[compact]
     ts = grid.tile_size
-    shift = jnp.stack([(compact - image_tile % grid.tiles_x) * ts, -(image_tile // grid.tiles_x) * ts],
+    tx = grid.tiles_x
+    shift = jnp.stack([(compact % tx - image_tile % tx) * ts, (compact // tx - image_tile // tx) * ts],
                       axis=1).astype(rows.dtype)
     return rows.at[:, :2].add(shift)
 
@@ -232,7 +236,9 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
     ``overflow`` also says a changed-tile capacity was outgrown) and the ``TileUse``.
     """
     grid = TileGrid(width, height, config.tile_size)
-    strip = TileGrid(tile_capacity * config.tile_size, config.tile_size, config.tile_size)
+    # the strip: whole rows of the image's width, at least tile_capacity tiles
+    slots = -(-tile_capacity // grid.tiles_x) * grid.tiles_x
+    strip = TileGrid(grid.tiles_x * config.tile_size, slots // grid.tiles_x * config.tile_size, config.tile_size)
     dtype = view.params.dtype
     proj, lists, needed, depths = _moving_lists(moving, K, world_to_camera, grid, moving_capacity, config)
     if features is None:
@@ -241,10 +247,10 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
 
     changed = lists.tile_count > 0
     num_changed = jnp.sum(changed, dtype=jnp.int32)
-    tiles = jnp.nonzero(changed, size=tile_capacity, fill_value=0)[0].astype(jnp.int32)
-    used = jnp.arange(tile_capacity, dtype=jnp.int32) < num_changed
-    static, static_depths, static_needed = _changed_static(view.lists, view.depths, tiles, used,
-                                                           entry_capacity)
+    tiles = jnp.nonzero(changed, size=slots, fill_value=0)[0].astype(jnp.int32)
+    used = jnp.arange(slots, dtype=jnp.int32) < num_changed
+    static, static_depths, _ = _changed_static(view.lists, view.depths, tiles, used, entry_capacity)
+    static_needed = jnp.sum(jnp.where(changed, view.lists.tile_count, 0), dtype=jnp.int32)  # all of them
     in_runs = jnp.minimum(lists.tile_start[-1] + lists.tile_count[-1], moving_capacity)
     moving_lists = TileLists(lists.gaussian_ids, jnp.where(used, lists.tile_start[tiles], in_runs),
                              jnp.where(used, lists.tile_count[tiles], 0))
@@ -256,7 +262,7 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
 
     # each image tile from its strip tile if it has one, else the static image (one gather)
     strip_tile = jnp.full(grid.num_tiles, -1, jnp.int32).at[jnp.where(used, tiles, grid.num_tiles)].set(
-        jnp.arange(tile_capacity, dtype=jnp.int32), mode="drop")
+        jnp.arange(slots, dtype=jnp.int32), mode="drop")
     from_strip, strip_tile = strip_tile >= 0, jnp.maximum(strip_tile, 0)
     acc = jnp.where(from_strip[:, None, None], acc[strip_tile], view.acc)
     trans = jnp.where(from_strip[:, None], trans[strip_tile], view.trans)
@@ -269,7 +275,7 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
         num_visible=view.num_visible + jnp.sum(proj.visible, dtype=jnp.int32),
         num_intersections=view.needed + needed,
         max_tile_intersections=jnp.maximum(unchanged_longest, jnp.max(merged.tile_count)),
-        overflow=((needed > moving_capacity) | (view.needed > view.depths.shape[0]) | too_long
+        overflow=((needed > moving_capacity) | (view.needed > view.depths.shape[0]) | too_long | view.too_long
                   | (num_changed > tile_capacity) | (static_needed > entry_capacity)),
         steps=steps,
         capacity=config.capacity,

@@ -348,7 +348,7 @@ class WorldCapacities:
     moving: int    # tile intersections of the moving Gaussians
     tiles: int     # tiles they reach
     entries: int   # background entries in those tiles
-    longest: int | None = None  # the background's longest tile list (its cameras'), bounds the merge's bisection
+    longest: int | None = None  # bounds the background's longest tile list (2^b − 1 for its bit length b): the merge's bisection
 
     def grown(self, use: TileUse, num_tiles: int) -> WorldCapacities:
         """Room for the largest use (``TileUse`` of every image); unchanged where it fitted. The
@@ -449,8 +449,9 @@ class WorldRenderer:
 
     def views(self, cameras: list[Camera], dtype=np.float32, depth: bool = True):
         """Static views of the background for these cameras (cached): (views, config, Ks,
-        world_to_cameras, width, height, the longest tile list of any of them). ``depth`` off: colour-only views (one channel less
-        to composite; what ``render(..., pixels=...)`` uses)."""
+        world_to_cameras, width, height, a bound on the longest tile list of any of them).
+        ``depth`` off: colour-only views (one channel less to composite; what
+        ``render(..., pixels=...)`` uses)."""
         arrays = [camera_arrays(c, None, dtype) for c in cameras]
         sizes = {(a[2], a[3]) for a in arrays}
         if len(sizes) != 1:
@@ -477,7 +478,9 @@ class WorldRenderer:
                 # fills, and every world's merge and composite walks all of them.
                 config = dataclasses.replace(config, capacity=quarter_octave(needed))
                 views = _static_views(background, Ks, w2cs, width=width, height=height, config=config)
-            self._views[key] = (self.mesh.put_replicated(views), config, int(jnp.max(views.lists.tile_count)))
+            # the bisection needs the longest list's bit length: one program per bit length
+            longest = (1 << int(jnp.max(views.lists.tile_count)).bit_length()) - 1
+            self._views[key] = (self.mesh.put_replicated(views), config, longest)
         views, config, longest = self._views[key]
         Ks, w2cs = self.mesh.put_replicated((Ks, w2cs))
         return views, config, Ks, w2cs, width, height, longest

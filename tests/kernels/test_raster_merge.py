@@ -165,3 +165,41 @@ def test_changed_tile_overflow_is_reported():
     assert bool(few_tiles.overflow) and bool(few_entries.overflow)
     # what was needed is still counted, so the caller can grow the capacity that was outgrown
     assert (int(use_a.tiles), int(use_b.static_entries)) == (tiles, entries)
+
+
+def test_changed_tiles_keep_the_image_precision_when_every_tile_changes():
+    """The strip is as wide as the image, so the shifted centres keep the image's float32
+    precision: a strip one tile high would move them up to (tiles × 16) px away."""
+    width, height = 320, 240
+    K, w2c = camera(width, height)
+    g, feats = random_scene(seed=5, n=3000, spread=2.0)
+    take = lambda x, part: x[part::2]  # noqa: E731
+    static, moving = jax.tree.map(lambda x: take(x, 0), g), jax.tree.map(lambda x: take(x, 1), g)
+    config = RasterConfig(capacity=1 << 16, chunk=16, slots=8)
+    view = static_view(static, K, w2c, width=width, height=height, features=take(feats, 0), config=config)
+    kwargs = dict(width=width, height=height, moving_capacity=1 << 15, features=take(feats, 1), config=config)
+    got, use = rasterize_changed_tiles(view, moving, K, w2c, tile_capacity=300, entry_capacity=1 << 16, **kwargs)
+    ref = rasterize_over_static(view, moving, K, w2c, **kwargs)
+    assert int(use.tiles) > 250 and not bool(got.overflow) and not bool(ref.overflow)
+    np.testing.assert_allclose(got.rgb, ref.rgb, atol=1e-6)
+
+
+def test_a_background_tile_longer_than_the_scan_is_reported():
+    """With the autodiff backward a tile list longer than its scan is incomplete: in a tile no
+    moving Gaussian reaches it is the background's own composite that is cut, and it is said."""
+    K, w2c, static, moving, f_static, f_moving = strip_scene()
+    base = _strip_view(CONFIG)(static, f_static, K, w2c)
+    _, use = _strip_changed(CONFIG)(base, moving, f_moving, K, w2c, 35, 1 << 11)
+    longest = int(np.max(base.lists.tile_count))
+    config = RasterConfig(capacity=1 << 11, chunk=1, slots=2, backward="autodiff", tile_capacity=longest - 1)
+    view = _strip_view(config)(static, f_static, K, w2c)
+    got, _ = _strip_changed(config)(view, moving, f_moving, K, w2c, 35, 1 << 11)
+    ref = merged_render_with(config)(view, moving, f_moving, K, w2c)
+    assert bool(view.too_long) and bool(got.overflow) and bool(ref.overflow)
+    np.testing.assert_allclose(got.rgb, ref.rgb, atol=1e-5)
+
+
+def merged_render_with(config):
+    return jax.jit(lambda v, g, f, K, w2c: rasterize_over_static(
+        v, g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, moving_capacity=MOVING_CAPACITY,
+        background=jnp.ones(3) * 0.3, features=f, config=config))
