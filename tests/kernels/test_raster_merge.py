@@ -4,6 +4,8 @@ entirely behind the camera and moving lists that overflow their capacity."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -88,17 +90,20 @@ STRIP_CONFIGS = {
 }
 
 
+@functools.cache  # one jitted function per config: its programs are reused across tests
 def _strip_full(config):
     return jax.jit(lambda g, f, K, w2c: rasterize(
         g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, background=jnp.ones(3) * 0.3, features=f,
         config=config))
 
 
+@functools.cache  # one jitted function per config: its programs are reused across tests
 def _strip_view(config):
     return jax.jit(lambda g, f, K, w2c: static_view(g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT,
                                                     features=f, config=config))
 
 
+@functools.cache  # one jitted function per config: its programs are reused across tests
 def _strip_changed(config):
     return jax.jit(lambda v, g, f, K, w2c, tiles, entries, longest=None: rasterize_changed_tiles(
         v, g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, moving_capacity=MOVING_CAPACITY,
@@ -199,6 +204,7 @@ def test_a_background_tile_longer_than_the_scan_is_reported():
     np.testing.assert_allclose(got.rgb, ref.rgb, atol=1e-5)
 
 
+@functools.cache  # one jitted function per config: its programs are reused across tests
 def merged_render_with(config):
     return jax.jit(lambda v, g, f, K, w2c: rasterize_over_static(
         v, g, K, w2c, width=STRIP_WIDTH, height=STRIP_HEIGHT, moving_capacity=MOVING_CAPACITY,
