@@ -181,10 +181,18 @@ class TileUse:
     static_entries: jax.Array  # () int32 static entries in those tiles
 
 
+def _tile_use(view: StaticView, lists: TileLists, needed) -> TileUse:
+    """The ``TileUse`` of moving lists with needed () int32 intersections over ``view``: the
+    tiles they reach and every static entry in those tiles (whether or not they fit)."""
+    changed = lists.tile_count > 0
+    return TileUse(needed, jnp.sum(changed, dtype=jnp.int32),
+                   jnp.sum(jnp.where(changed, view.lists.tile_count, 0), dtype=jnp.int32))
+
+
 def _changed_static(static: TileLists, static_depths, tiles, used, entry_capacity: int):
     """The static lists of the changed tiles, one after another: compact lists over the D
     tiles (D,) int32 (used (D,) bool; unused tiles get empty lists) in ``entry_capacity``
-    slots, their entry depths (from static_depths (Cs,)), and the entries needed () int32."""
+    slots, and their entry depths (from static_depths (Cs,))."""
     cs = static.gaussian_ids.shape[0]
     count = jnp.where(used, static.tile_count[tiles], 0)
     ends = jnp.cumsum(count, dtype=jnp.int32)
@@ -198,7 +206,7 @@ def _changed_static(static: TileLists, static_depths, tiles, used, entry_capacit
     # a tile cut by the capacity keeps what fits (the render is then marked as overflowing)
     fitted_start = jnp.minimum(start, entry_capacity)
     fitted = TileLists(ids, fitted_start, jnp.minimum(ends, entry_capacity) - fitted_start)
-    return fitted, depths, ends[-1]
+    return fitted, depths
 
 
 def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_params):
@@ -245,12 +253,12 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
         features = jnp.zeros((moving.num, view.params.shape[1] - base_columns(config.depth)), dtype)
     background = jnp.zeros(3, dtype) if background is None else jnp.asarray(background, dtype)
 
+    use = _tile_use(view, lists, needed)
+    num_changed, static_needed = use.tiles, use.static_entries
     changed = lists.tile_count > 0
-    num_changed = jnp.sum(changed, dtype=jnp.int32)
     tiles = jnp.nonzero(changed, size=slots, fill_value=0)[0].astype(jnp.int32)
     used = jnp.arange(slots, dtype=jnp.int32) < num_changed
-    static, static_depths, _ = _changed_static(view.lists, view.depths, tiles, used, entry_capacity)
-    static_needed = jnp.sum(jnp.where(changed, view.lists.tile_count, 0), dtype=jnp.int32)  # all of them
+    static, static_depths = _changed_static(view.lists, view.depths, tiles, used, entry_capacity)
     in_runs = jnp.minimum(lists.tile_start[-1] + lists.tile_count[-1], moving_capacity)
     moving_lists = TileLists(lists.gaussian_ids, jnp.where(used, lists.tile_start[tiles], in_runs),
                              jnp.where(used, lists.tile_count[tiles], 0))
@@ -268,7 +276,6 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
     trans = jnp.where(from_strip[:, None], trans[strip_tile], view.trans)
     rgb, depth, alpha, feats = images_from_tiles(grid, acc, trans, background, config.depth)
     unchanged_longest = jnp.max(jnp.where(changed, 0, view.lists.tile_count))
-    use = TileUse(needed, num_changed, static_needed)
     return RasterOutput(
         rgb=rgb, depth=depth, alpha=alpha, features=feats,
         radii=jnp.concatenate([view.radii, jax.lax.stop_gradient(proj.radii)]),
@@ -290,6 +297,4 @@ def changed_tile_use(view: StaticView, moving: Gaussians, K, world_to_camera, *,
     ``moving_capacity``) and the static entries in those tiles."""
     grid = TileGrid(width, height, config.tile_size)
     _, lists, needed, _ = _moving_lists(moving, K, world_to_camera, grid, moving_capacity, config)
-    changed = lists.tile_count > 0
-    return TileUse(needed, jnp.sum(changed, dtype=jnp.int32),
-                   jnp.sum(jnp.where(changed, view.lists.tile_count, 0), dtype=jnp.int32))
+    return _tile_use(view, lists, needed)
