@@ -1,4 +1,4 @@
-"""Shared fixtures: float64 switch, the real-data folder."""
+"""Shared fixtures: float64 switch, the real-data folder; Warp's compile options for the tests."""
 
 from __future__ import annotations
 
@@ -7,7 +7,11 @@ from pathlib import Path
 import jax
 import pytest
 
+from tests.compile_settings import compile_quickly
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+compile_quickly()  # Warp's CPU kernels: compile time over run time (tests/compile_settings.py)
 
 
 @pytest.fixture

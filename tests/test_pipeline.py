@@ -15,13 +15,17 @@ from phirie_jax.pipeline import STAGES
 from phirie_jax.synthetic import synthesize
 
 PLACEMENT_TOL = 0.03  # m between a placed object's origin and the true one's
+# CoACD's search shortened (its defaults are for the demo and real captures; here it took most of
+# the conversion's time): what these tests check does not depend on how finely the objects split
+CHEAP_COLLISION = ["--config.physics.coacd.resolution", "500", "--config.physics.coacd.mcts-iterations", "20",
+                   "--config.physics.coacd.mcts-nodes", "5", "--config.physics.max-parts", "4"]
 
 
 @pytest.fixture(scope="module")
 def converted(tmp_path_factory):
     root = tmp_path_factory.mktemp("convert")
     scene = synthesize(root / "scene", preset="tiny", seed=3)
-    assert main(["convert", str(root / "scene"), "--out", str(root / "out")]) == 0
+    assert main(["convert", str(root / "scene"), "--out", str(root / "out"), *CHEAP_COLLISION]) == 0
     return scene, root / "scene", root / "out"
 
 
@@ -89,7 +93,7 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
 
     from phirie_jax.construct.physics import stage
     from phirie_jax.construct.physics.collision import MeshError
-    from phirie_jax.construct.physics.config import PhysicsConfig
+    from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
     from phirie_jax.pipeline import ConvertConfig, run_convert
 
     _, scene_dir, out = converted
@@ -105,7 +109,8 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
         return build(entry, *args)
 
     monkeypatch.setattr(stage, "build_object", build_or_fail)
-    config = ConvertConfig(physics=PhysicsConfig(workers=1))   # built in this process, where the patch holds
+    coacd = CoacdConfig(resolution=500, mcts_iterations=20, mcts_nodes=5)   # as CHEAP_COLLISION
+    config = ConvertConfig(physics=PhysicsConfig(workers=1, max_parts=4, coacd=coacd))  # in this process: patched
     manifest = run_convert(scene_dir, copy, config, stages=("physics", "background"))
     status = {o["id"]: o["status"] for o in manifest["objects"]}
     assert status[failing] == "failed"

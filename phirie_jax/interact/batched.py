@@ -341,6 +341,12 @@ def _static_views(background: Gaussians, Ks, world_to_cameras, *, width: int, he
                                              config=config))(Ks, world_to_cameras)
 
 
+def room_for(used: int) -> int:
+    """Slots for a list that held ``used`` entries: a quarter octave past it with a quarter to
+    spare, as objects move between renders."""
+    return quarter_octave(used + used // 4)
+
+
 @dataclasses.dataclass(frozen=True)
 class WorldCapacities:
     """Slots of one image's lists (``rasterize_changed_tiles``), shared by every world and camera."""
@@ -351,15 +357,15 @@ class WorldCapacities:
     longest: int | None = None  # bounds the background's longest tile list (2^b − 1 for its bit length b): the merge's bisection
 
     def grown(self, use: TileUse, num_tiles: int) -> WorldCapacities:
-        """Room for the largest use (``TileUse`` of every image); unchanged where it fitted. The
-        moving lists double, as ``phirie_jax.render.Renderer``'s; the changed tiles and their
-        background entries grow to a quarter octave past the use with a quarter to spare (objects
-        move between renders), the tiles at most all of the image's."""
+        """Room for the largest use (``TileUse`` of every image); unchanged where it fitted. What
+        grows grows to ``room_for`` its use (the changed tiles at most all of the image's): the
+        rule by which ``WorldRenderer`` sizes the lists before its first render, so that growing
+        to fit and counting ahead agree."""
         moving, tiles, entries = (max(1, int(jnp.max(x))) for x in (use.moving, use.tiles, use.static_entries))
         return WorldCapacities(
-            self.moving if moving <= self.moving else max(2 * self.moving, next_power_of_two(moving)),
-            self.tiles if tiles <= self.tiles else min(num_tiles, quarter_octave(tiles + tiles // 4)),
-            self.entries if entries <= self.entries else quarter_octave(entries + entries // 4),
+            self.moving if moving <= self.moving else room_for(moving),
+            self.tiles if tiles <= self.tiles else min(num_tiles, room_for(tiles)),
+            self.entries if entries <= self.entries else room_for(entries),
             self.longest)
 
 
@@ -498,8 +504,7 @@ class WorldRenderer:
                 break
             # the tiles were counted from cut lists: again, with room for every intersection
             self.capacities = dataclasses.replace(self.capacities, moving=next_power_of_two(moving))
-        counted = dataclasses.replace(self.capacities, moving=quarter_octave(moving + moving // 4), tiles=0,
-                                      entries=0).grown(use, num_tiles)
+        counted = WorldCapacities(moving=0, tiles=0, entries=0, longest=self.capacities.longest).grown(use, num_tiles)
         # the whole-image render has no changed-tile lists: a placeholder slot each
         self.capacities = dataclasses.replace(counted, tiles=1, entries=1) if self.whole_images else counted
 

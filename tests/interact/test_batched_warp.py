@@ -203,7 +203,9 @@ import numpy as np
 
 from phirie_jax.interact.batched import BatchedEnvironment
 from tests.interact.test_environment import toy_env
+from tests.compile_settings import compile_quickly
 
+compile_quickly()
 assert jax.device_count() == 4
 env = toy_env(Path(sys.argv[1]))
 throws = np.random.default_rng(3).normal(0.0, 0.5, (6, env.model.nv))

@@ -13,23 +13,32 @@ from tests.interact.test_environment import toy_env
 IMAGE_TOL = 1e-5  # the same float32 arithmetic, compiled into different programs
 
 
+def three_worlds(env, on_world=lambda: None) -> np.ndarray:
+    """Placements (3, K, 4, 4) of the toy scene's objects in three worlds, turned at random and
+    low enough that the floor's disks cut through the boxes: depths interleave. The tests below
+    render these, so that they share compiled programs (one per capacities and world count).
+    ``on_world()`` is called with each world's objects placed in ``env``."""
+    rng = np.random.default_rng(4)
+    placements = []
+    for _ in range(3):
+        for obj in env.objects:
+            pose = np.eye(4)
+            pose[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.8, 3)).as_matrix()
+            pose[:3, 3] = [rng.uniform(-0.1, 0.25), rng.uniform(-0.1, 0.15), rng.uniform(0.0, 0.04)]
+            env.place(obj.id, pose=pose)
+        on_world()
+        placements.append(env.placements())
+    return np.stack(placements)
+
+
 def test_each_world_renders_as_the_single_environment(tmp_path):
     env = toy_env(tmp_path, view_dependence=0.3)
     renderer = WorldRenderer(env)
     # far too small: the render must grow every capacity, dropping nothing
     renderer.capacities = WorldCapacities(moving=16, tiles=1, entries=1)
-    rng = np.random.default_rng(4)
-    placements, singles = [], []
-    for _ in range(3):
-        for obj in env.objects:
-            pose = np.eye(4)
-            pose[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.8, 3)).as_matrix()
-            # low enough that the floor's disks cut through the boxes: depths interleave
-            pose[:3, 3] = [rng.uniform(-0.1, 0.25), rng.uniform(-0.1, 0.15), rng.uniform(0.0, 0.04)]
-            env.place(obj.id, pose=pose)
-        placements.append(env.placements())
-        singles.append([env.render(c) for c in (0, 1)])
-    out = renderer.render(np.stack(placements), [0, 1], max_images=4)  # 2 worlds a call
+    singles = []
+    placements = three_worlds(env, lambda: singles.append([env.render(c) for c in (0, 1)]))
+    out = renderer.render(placements, [0, 1], max_images=4)  # 2 worlds a call
     assert out.rgb.shape == (3, 2, 48, 64, 3) and renderer.retries >= 1
     for world in range(3):
         for cam in range(2):
@@ -44,7 +53,7 @@ def test_each_world_renders_as_the_single_environment(tmp_path):
     assert 1 < renderer.capacities.tiles < 12  # of the 4 × 3 tiles
     # sized by counting before the first render: the same images without a retry
     counted = WorldRenderer(env)
-    again = counted.render(np.stack(placements), [0, 1], max_images=4)
+    again = counted.render(placements, [0, 1], max_images=4)
     np.testing.assert_allclose(again.rgb, out.rgb, atol=IMAGE_TOL)
     assert counted.retries == 0 and counted.capacities.tiles >= 1
     # the background's lists hold what its busiest camera needs, at most a fifth of them idle
@@ -58,10 +67,10 @@ def test_policy_pixels_are_the_render_in_the_policys_type(tmp_path):
 
     env = toy_env(tmp_path, view_dependence=0.3)
     renderer = WorldRenderer(env)
-    placements = np.stack([env.placements()] * 2)
+    placements = three_worlds(env)
     full = renderer.render(placements, [0, 1], max_images=4)
     as_uint8 = renderer.render(placements, [0, 1], max_images=4, pixels="uint8")
-    assert as_uint8.shape == full.rgb.shape == (2, 2, 48, 64, 3) and as_uint8.dtype == jnp.uint8
+    assert as_uint8.shape == full.rgb.shape == (3, 2, 48, 64, 3) and as_uint8.dtype == jnp.uint8
     expected = np.round(np.clip(np.asarray(full.rgb), 0.0, 1.0) * 255.0)
     # the same render compiled into another program: a value on a rounding edge may move by one
     assert np.abs(np.asarray(as_uint8, np.int32) - expected).max() <= 1
