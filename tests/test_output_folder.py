@@ -27,15 +27,10 @@ from phirie_jax.errors import OptionError, SceneInputError
 from phirie_jax.io.camera import outside_paths_allowed
 from phirie_jax.io.scene import load_scene
 from phirie_jax.synthetic import synthesize
+from tests.fixtures.cheap_convert import CHEAP
 from tests.processes import kill_quietly, wait_for
 
 CONVERSION_SECONDS = 240    # a whole tiny conversion in a child process on a loaded 2-core machine
-# A whole conversion, made cheaper where it does not matter here: no refinement steps, no report,
-# CoACD's search shortened, no see-through votes (renders of 16 views per object).
-CHEAP = ["--config.background.refine.iterations", "0", "--config.report.no-enabled",
-         "--config.physics.coacd.resolution", "500", "--config.physics.coacd.mcts-iterations", "20",
-         "--config.physics.coacd.mcts-nodes", "5", "--config.physics.max-parts", "4",
-         "--config.background.fill.see-through-votes", "0"]
 
 
 @pytest.fixture(scope="module")

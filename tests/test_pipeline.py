@@ -13,12 +13,9 @@ from phirie_jax.cli import main
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.pipeline import STAGES
 from phirie_jax.synthetic import synthesize
+from tests.fixtures.cheap_convert import CHEAP_COACD, CHEAP_COLLISION, CHEAP_MAX_PARTS
 
 PLACEMENT_TOL = 0.03  # m between a placed object's origin and the true one's
-# CoACD's search shortened (its defaults are for the demo and real captures; here it took most of
-# the conversion's time): what these tests check does not depend on how finely the objects split
-CHEAP_COLLISION = ["--config.physics.coacd.resolution", "500", "--config.physics.coacd.mcts-iterations", "20",
-                   "--config.physics.coacd.mcts-nodes", "5", "--config.physics.max-parts", "4"]
 
 
 @pytest.fixture(scope="module")
@@ -109,8 +106,8 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
         return build(entry, *args)
 
     monkeypatch.setattr(stage, "build_object", build_or_fail)
-    coacd = CoacdConfig(resolution=500, mcts_iterations=20, mcts_nodes=5)   # as CHEAP_COLLISION
-    config = ConvertConfig(physics=PhysicsConfig(workers=1, max_parts=4, coacd=coacd))  # in this process: patched
+    physics = PhysicsConfig(workers=1, max_parts=CHEAP_MAX_PARTS, coacd=CoacdConfig(**CHEAP_COACD))
+    config = ConvertConfig(physics=physics)   # built in this process, where the patch holds
     manifest = run_convert(scene_dir, copy, config, stages=("physics", "background"))
     status = {o["id"]: o["status"] for o in manifest["objects"]}
     assert status[failing] == "failed"

@@ -31,17 +31,11 @@ from phirie_jax import layout
 from phirie_jax.cli import main
 from phirie_jax.manifest import Manifest
 from phirie_jax.synthetic import synthesize
+from tests.fixtures.cheap_convert import CHEAP
 from tests.processes import running, wait_for
 
 pytest.importorskip("ray", reason="the cluster extra (pip install 'phirie_jax[cluster]') is not installed")
 
-# A whole conversion, made cheaper where it does not matter here: no refinement steps, no report,
-# CoACD's search shortened (it took 29-104 s of a tiny scene's 39-116 s on a loaded 2-core machine),
-# no see-through votes (renders of 16 views per object).
-CHEAP = ["--config.background.refine.iterations", "0", "--config.report.no-enabled",
-         "--config.physics.coacd.resolution", "500", "--config.physics.coacd.mcts-iterations", "20",
-         "--config.physics.coacd.mcts-nodes", "5", "--config.physics.max-parts", "4",
-         "--config.background.fill.see-through-votes", "0"]
 RUN_SECONDS = 900        # the 4-scene run (one killed and retried) on a loaded 2-core machine
 BUSY_SECONDS = 300       # until the first scene's objects stage runs
 NAMES = ["lab1-desk", "lab2-desk", "shelf", "broken"]

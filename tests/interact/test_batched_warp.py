@@ -202,8 +202,8 @@ import jax
 import numpy as np
 
 from phirie_jax.interact.batched import BatchedEnvironment
-from tests.interact.test_environment import toy_env
 from tests.compile_settings import compile_quickly
+from tests.interact.test_environment import toy_env
 
 compile_quickly()
 assert jax.device_count() == 4
