@@ -6,6 +6,8 @@ Two workloads, each run on ``devices=1`` and on every device JAX sees, in this p
   ``interact.batched.BatchedEnvironment`` (the worlds spread over a 1-D mesh, ``kernels.sharding``):
   each world gets its own throw (seeded random velocities), then ``--steps`` steps per timed call
   (world-steps/s) and a render of every world from every camera per timed call (frames/s);
+- ``steps``: the worlds' MJX steps alone (no render, no comparison), for world counts whose
+  render would not fit a call's time;
 - ``droptests``: ``--candidates`` drop tests (the procedural agreement cases of
   ``bench_droptest``, one hull each, the paper's protocol) in the MJX batch program
   (``construct.physics.mjx_batch``, candidates spread over the mesh); and, with MuJoCo Warp
@@ -15,13 +17,14 @@ Two workloads, each run on ``devices=1`` and on every device JAX sees, in this p
 Compile time (``.lower().compile()``, or the first call minus a later one) is reported apart
 from run time (median of ``--repeats`` calls after it, ``block_until_ready``). Speedups are run
 time on one device over run time on all: ``speedup_worlds`` (steps and render of one timed round),
-``speedup_droptests`` (MJX; ``speedup_droptests_warp`` for Warp). Per-world results are
-compared: the worlds' final state (qpos, qvel) and every image, the candidates' states after
-settling and at the end and their verdicts. ``equal_to_single_device`` is true when all of them
-are equal bit for bit; the largest differences are beside it. A compiler may vectorise a row's
-sums differently for another batch size (XLA:CPU does: 8 worlds vmapped together against 2 per
-device), so ``first_device_rows`` also compares the first device's rows with one device running
-as many rows: that comparison isolates the sharding itself.
+``speedup_droptests`` (MJX; ``speedup_droptests_warp`` for Warp); ``steps.speedup`` for the
+steps alone. Per-world results are compared: the worlds' final state (qpos, qvel) and every
+image, the candidates' states after settling and at the end and their verdicts.
+``equal_to_single_device`` is true when all of them are equal bit for bit; the largest
+differences are beside it. A compiler may vectorise a row's sums differently for another batch
+size (XLA:CPU does: 8 worlds vmapped together against 2 per device), so ``first_device_rows``
+also compares the first device's rows with one device running as many rows: that comparison
+isolates the sharding itself (``docs/scaling.md`` says why even it can differ).
 
 The scene: ``--scene DIR``, a ``phirie convert`` output folder; when DIR has no ``scene.xml``
 the demo's scene is made there first (``phirie synth`` of the default preset, seed 0, into
@@ -177,6 +180,26 @@ def first_device_worlds(env, sharded: dict, args, throws: np.ndarray, state: dic
             "max_abs_qpos_difference": _largest(batch.data.qpos, np.asarray(state["qpos"])[:per])}
 
 
+def steps_part(args, all_devices) -> dict:
+    """The ``worlds`` part's MJX steps alone on one device and on all: ``speedup`` is the
+    median call's time on one over that on all."""
+    from phirie_jax.interact.batched import BatchedEnvironment
+    from phirie_jax.interact.environment import Environment
+
+    env = Environment.load(args.scene)
+    throws = np.random.default_rng(args.seed).normal(0.0, args.throw, (args.worlds, env.model.nv))
+    rows = []
+    for devices in (1, all_devices):
+        batch = BatchedEnvironment(env, args.worlds, devices=devices)
+        batch.set_velocities(throws)
+        first, step_s = timed(lambda: (batch.step(args.steps), batch.data.qpos)[1], args.repeats)
+        rows.append({"devices": batch.mesh.size, "step_compile_s": round(first - step_s, 2), "step_s": round(step_s, 4),
+                     "world_steps_per_s": round(args.worlds * args.steps / step_s, 1)})
+        _say(json.dumps(rows[-1]))
+    return {"worlds": args.worlds, "steps_per_call": args.steps, "one_device": rows[0], "all_devices": rows[1],
+            "speedup": round(rows[0]["step_s"] / rows[1]["step_s"], 3)}
+
+
 # --- drop tests ----------------------------------------------------------------------------
 
 
@@ -325,7 +348,7 @@ def main(argv=None) -> None:
     parser.add_argument("--candidates", type=int, default=4096)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--parts", nargs="+", choices=["worlds", "droptests"], default=["worlds", "droptests"])
+    parser.add_argument("--parts", nargs="+", choices=["worlds", "steps", "droptests"], default=["worlds", "droptests"])
     parser.add_argument("--skip-warp", action="store_true", help="no MuJoCo Warp rows")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
@@ -343,6 +366,9 @@ def main(argv=None) -> None:
                 result["scene_made_s"] = made
             result["worlds"] = worlds_part(args, all_devices)
             result["speedup_worlds"] = result["worlds"]["speedup"]
+        if "steps" in args.parts:
+            ensure_scene(args.scene)
+            result["steps"] = steps_part(args, all_devices)
         if "droptests" in args.parts:
             result["droptests"], result["droptests_warp"] = droptests_part(args, all_devices)
             result["speedup_droptests"] = result["droptests"]["speedup"]
