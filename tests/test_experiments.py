@@ -206,3 +206,22 @@ def test_depth_probe_reference_two_layers():
     assert expected == pytest.approx(float(out.depth_normalized[16, 16]), abs=1e-4)
     assert alpha == pytest.approx(float(out.alpha[16, 16]), abs=1e-5)
     assert 1.0 < expected < 1.5 and at[0.5] == pytest.approx(1.5) and at[0.95] == pytest.approx(1.5)
+
+
+def test_compile_determinism_counts_the_worlds_two_runs_agree_on(tmp_path):
+    import numpy as np
+
+    from experiments.compile_determinism import compare
+
+    first = np.random.default_rng(0).normal(size=(5, 7)).astype(np.float32)
+    second = first.copy()
+    second[2, 3] = np.nextafter(second[2, 3], np.float32(np.inf))      # one ulp in one world
+    np.save(tmp_path / "a.npy", first)
+    np.save(tmp_path / "b.npy", second)
+    result = compare(tmp_path / "a.npy", tmp_path / "b.npy")
+    assert result["worlds"] == 5 and result["worlds_equal"] == 4
+    assert result["max_abs_qpos_difference"] == abs(float(second[2, 3]) - float(first[2, 3])) > 0
+    assert compare(tmp_path / "a.npy", tmp_path / "a.npy")["worlds_equal"] == 5
+    np.save(tmp_path / "c.npy", first[:4])
+    with pytest.raises(SystemExit, match="shape"):
+        compare(tmp_path / "a.npy", tmp_path / "c.npy")
