@@ -32,6 +32,14 @@ pad worlds are copies of world 0 that are stepped and never reported), the state
 the worlds axis with a ``NamedSharding``, the model and the background's tile lists are
 replicated, and ``step`` and ``render`` are each one program in which every device runs its own
 worlds. ``render`` draws each device's worlds ``max_images`` images at a time, in one program.
+
+Reproducibility: one compiled ``step`` gives the same worlds bit for bit every time it runs from
+the same state. Another compilation need not: on a GPU, XLA's autotuner keeps whichever kernel
+it timed fastest for a fusion (``--xla_gpu_autotune_level=0`` keeps its default one; the step
+then takes 30 % longer on an H100), and the program for another number of devices fuses the
+solver's loop differently, so the thrown objects' worlds agree across compilations and device
+counts to rounding, which contacts grow (``docs/scaling.md``). A persistent compilation cache
+(``phirie_jax.compile_cache``, on in the command line) gives later processes the same program.
 """
 
 from __future__ import annotations
