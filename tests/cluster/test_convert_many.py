@@ -191,6 +191,9 @@ def rerun(run: dict, root: Path, folder: Path) -> tuple[int, dict]:
     return code, json.loads((again / "summary.json").read_text())
 
 
+# The rerun starts Ray from this process, where an earlier test's conversion started JAX: JAX warns
+# at every fork, but Ray's processes exec at once and run none of this process's threads' code.
+@pytest.mark.filterwarnings(r"ignore:os\.fork\(\) was called:RuntimeWarning")
 def test_a_rerun_skips_the_converted_scenes(many, tmp_path, capsys):
     run, root, summary = many
     code, again = rerun(run, root, tmp_path / "root")
