@@ -367,7 +367,9 @@ def main(argv=None) -> None:
             result["worlds"] = worlds_part(args, all_devices)
             result["speedup_worlds"] = result["worlds"]["speedup"]
         if "steps" in args.parts:
-            ensure_scene(args.scene)
+            made = ensure_scene(args.scene)
+            if made is not None:
+                result["scene_made_s"] = made
             result["steps"] = steps_part(args, all_devices)
         if "droptests" in args.parts:
             result["droptests"], result["droptests_warp"] = droptests_part(args, all_devices)
