@@ -86,16 +86,26 @@ def _largest(a, b) -> float:
 # --- worlds ------------------------------------------------------------------------------
 
 
-def bench_worlds(env, worlds: int, cameras: list[int], steps: int, repeats: int, devices, throws: np.ndarray,
+def throws(env, worlds: int, throw: float, seed: int) -> np.ndarray:
+    """(worlds, nv) initial velocities, each ~ N(0, throw): every world thrown its own way."""
+    return np.random.default_rng(seed).normal(0.0, throw, (worlds, env.model.nv))
+
+
+def timed_steps(batch, steps: int, repeats: int) -> tuple[float, float]:
+    """``timed`` for ``batch.step(steps)``, waiting on the worlds' state."""
+    return timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
+
+
+def bench_worlds(env, worlds: int, cameras: list[int], steps: int, repeats: int, devices, thrown: np.ndarray,
                  max_images: int) -> tuple[dict, dict]:
     """One device count: timings, and (final state, images) for the comparison."""
     from phirie_jax.interact.batched import BatchedEnvironment
 
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, devices=devices)
-    batch.set_velocities(throws)
+    batch.set_velocities(thrown)
     put_s = time.perf_counter() - t0
-    step_first, step_s = timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
+    step_first, step_s = timed_steps(batch, steps, repeats)
     render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb, repeats)
     images = batch.render(cameras, max_images=max_images)
     state = {"qpos": batch.data.qpos, "qvel": batch.data.qvel}
@@ -140,7 +150,7 @@ def worlds_part(args, all_devices) -> dict:
     if args.width is not None:
         env.cameras = [c.scaled(args.width / c.width) for c in env.cameras]
     cameras = list(range(min(args.cameras, len(env.cameras))))
-    throws = np.random.default_rng(args.seed).normal(0.0, args.throw, (args.worlds, env.model.nv))
+    thrown = throws(env, args.worlds, args.throw, args.seed)
     result = {"worlds": args.worlds, "cameras": len(cameras), "steps_per_call": args.steps,
               "image": [env.cameras[0].width, env.cameras[0].height], "objects": len(env.objects),
               "gaussians": int(env.background.num + env.object_gaussians.num),
@@ -149,7 +159,7 @@ def worlds_part(args, all_devices) -> dict:
     rows, kept = [], []
     for devices in (1, all_devices):
         _say(f"worlds on {len(devices) if devices != 1 else 1} device(s)")
-        row, out = bench_worlds(env, args.worlds, cameras, args.steps, args.repeats, devices, throws, args.max_images)
+        row, out = bench_worlds(env, args.worlds, cameras, args.steps, args.repeats, devices, thrown, args.max_images)
         rows.append(row)
         kept.append(out)
         _say(json.dumps(row))
@@ -159,11 +169,11 @@ def worlds_part(args, all_devices) -> dict:
     result["speedup_frames"] = round(rows[0]["render_s"] / rows[1]["render_s"], 3)
     result["speedup"] = round(rows[0]["round_s"] / rows[1]["round_s"], 3)
     if rows[1]["devices"] > 1:
-        result["first_device_rows"] = first_device_worlds(env, rows[1], args, throws, kept[1]["state"])
+        result["first_device_rows"] = first_device_worlds(env, rows[1], args, thrown, kept[1]["state"])
     return result
 
 
-def first_device_worlds(env, sharded: dict, args, throws: np.ndarray, state: dict) -> dict:
+def first_device_worlds(env, sharded: dict, args, thrown: np.ndarray, state: dict) -> dict:
     """The first device's worlds of the sharded run against one device stepping as many worlds
     (the same vmapped size): equal bit for bit when the sharding itself changes nothing, whatever
     a compiler makes of a different batch size."""
@@ -171,7 +181,7 @@ def first_device_worlds(env, sharded: dict, args, throws: np.ndarray, state: dic
 
     per = sharded["worlds_padded"] // sharded["devices"]
     batch = BatchedEnvironment(env, per, devices=1)
-    batch.set_velocities(throws[:per])
+    batch.set_velocities(thrown[:per])
     for _ in range(1 + args.repeats):     # the step calls of ``bench_worlds``
         batch.step(args.steps)
     same = [np.array_equal(np.asarray(getattr(batch.data, name)), np.asarray(state[name])[:per])
@@ -187,12 +197,11 @@ def steps_part(args, all_devices) -> dict:
     from phirie_jax.interact.environment import Environment
 
     env = Environment.load(args.scene)
-    throws = np.random.default_rng(args.seed).normal(0.0, args.throw, (args.worlds, env.model.nv))
     rows = []
     for devices in (1, all_devices):
         batch = BatchedEnvironment(env, args.worlds, devices=devices)
-        batch.set_velocities(throws)
-        first, step_s = timed(lambda: (batch.step(args.steps), batch.data.qpos)[1], args.repeats)
+        batch.set_velocities(throws(env, args.worlds, args.throw, args.seed))
+        first, step_s = timed_steps(batch, args.steps, args.repeats)
         rows.append({"devices": batch.mesh.size, "step_compile_s": round(first - step_s, 2), "step_s": round(step_s, 4),
                      "world_steps_per_s": round(args.worlds * args.steps / step_s, 1)})
         _say(json.dumps(rows[-1]))

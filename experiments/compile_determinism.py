@@ -32,14 +32,14 @@ def run(args) -> dict:
 
     jax.config.update("jax_enable_compilation_cache", False)   # a compilation of its own
 
-    from experiments.timing import timed
+    from experiments.bench_scaling import throws, timed_steps
     from phirie_jax.interact.batched import BatchedEnvironment
     from phirie_jax.interact.environment import Environment
 
     env = Environment.load(args.scene)
     batch = BatchedEnvironment(env, args.worlds, devices=1)
-    batch.set_velocities(np.random.default_rng(args.seed).normal(0.0, args.throw, (args.worlds, env.model.nv)))
-    first, call_s = timed(lambda: (batch.step(args.steps), batch.data.qpos)[1], args.calls - 1)
+    batch.set_velocities(throws(env, args.worlds, args.throw, args.seed))
+    first, call_s = timed_steps(batch, args.steps, args.calls - 1)
     qpos = np.asarray(batch.data.qpos)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     partial = args.out.with_name(f".{args.out.name}.partial.npy")
