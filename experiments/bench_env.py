@@ -29,7 +29,7 @@ import numpy as np
 
 from experiments.profiling import kernel_summary
 from experiments.report import emit
-from experiments.timing import timed
+from experiments.timing import timed, timed_steps
 from kernels.composite_pallas import PallasSettings
 from kernels.raster import RasterConfig
 from phirie_jax.interact.batched import BatchedEnvironment, WorldRenderer
@@ -53,7 +53,7 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
-    step_first, step_s = timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
+    step_first, step_s = timed_steps(batch, steps, repeats)
     frames = worlds * len(cameras)
     result = {
         "worlds": worlds, "cameras": len(cameras), "steps": steps, "collision": collision,

@@ -56,7 +56,7 @@ import jax
 import numpy as np
 
 from experiments.report import emit
-from experiments.timing import timed
+from experiments.timing import timed, timed_steps
 from kernels.sharding import BatchMesh
 
 
@@ -89,11 +89,6 @@ def _largest(a, b) -> float:
 def throws(env, worlds: int, throw: float, seed: int) -> np.ndarray:
     """(worlds, nv) initial velocities, each ~ N(0, throw): every world thrown its own way."""
     return np.random.default_rng(seed).normal(0.0, throw, (worlds, env.model.nv))
-
-
-def timed_steps(batch, steps: int, repeats: int) -> tuple[float, float]:
-    """``timed`` for ``batch.step(steps)``, waiting on the worlds' state."""
-    return timed(lambda: (batch.step(steps), batch.data.qpos)[1], repeats)
 
 
 def bench_worlds(env, worlds: int, cameras: list[int], steps: int, repeats: int, devices, thrown: np.ndarray,

@@ -32,7 +32,8 @@ def run(args) -> dict:
 
     jax.config.update("jax_enable_compilation_cache", False)   # a compilation of its own
 
-    from experiments.bench_scaling import throws, timed_steps
+    from experiments.bench_scaling import throws
+    from experiments.timing import timed_steps
     from phirie_jax.interact.batched import BatchedEnvironment
     from phirie_jax.interact.environment import Environment
 
