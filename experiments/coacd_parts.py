@@ -1,18 +1,22 @@
-"""CoACD per object, fixed settings against the settings adapted to each object's size and
-complexity (``collision.coacd_settings``): parts, hull-volume / mesh-volume ratio, CPU seconds
+"""CoACD per object under several profiles: parts, hull-volume / mesh-volume ratio, CPU seconds
 and the drop-test verdict of the parts as the physics stage writes them; prints one JSON object.
 
     python -m experiments.coacd_parts --outputs /tmp/crowded/out /tmp/default/out --synthetic \\
         --workers 2 --out experiments/results/coacd_parts.json
+    python -m experiments.coacd_parts --outputs out/demo/convert --synthetic --workers 2 \\
+        --profiles coacd_merge adaptive --baseline coacd_merge --out experiments/results/coacd_merge.json
 
 Objects: every kept object of each ``--outputs`` folder (a conversion past its objects stage: the
 completed meshes the physics stage decomposes, their poses and categories), and with
 ``--synthetic`` the synthetic categories' own meshes (``--seeds`` each) and an annulus. Profiles:
-``fixed`` (``AdaptiveCoacd(enabled=False)``: threshold 0.05, 60 tree-search iterations, the
-repaired mesh of ≤ 40K triangles) and ``adaptive`` (the default ``PhysicsConfig``). Each object
-is built in a worker process with one OpenMP thread (as the physics stage's workers run with one
-worker per core), so its CPU seconds are its time on one core. The guard: for every object, the
-adaptive ratio within ``RATIO_BOUND`` of the fixed one and the same drop-test verdict.
+``fixed`` (``AdaptiveCoacd(enabled=False)`` and CoACD's own merge: threshold 0.05, 60 tree-search
+iterations, the repaired mesh of ≤ 40K triangles), ``coacd_merge`` (the settings adapted to each
+object's size and complexity, ``collision.coacd_settings``, with CoACD's own merge) and
+``adaptive`` (the default ``PhysicsConfig``: adapted settings, ``collision.merge_parts``). Each
+object is built in a worker process with one OpenMP thread (as the physics stage's workers run
+with one worker per core), so its CPU seconds are its time on one core. The guard: for every
+object, each profile's ratio within ``RATIO_BOUND`` of the ``--baseline`` one and the same
+drop-test verdict.
 """
 
 from __future__ import annotations
@@ -32,15 +36,16 @@ import numpy as np
 
 from experiments.report import emit
 
-RATIO_BOUND = 0.1   # |adaptive − fixed| hull-volume ratio, per object
-PROFILES = ("fixed", "adaptive")
+RATIO_BOUND = 0.1   # |profile − baseline| hull-volume ratio, per object
+PROFILES = ("fixed", "coacd_merge", "adaptive")
 
 
 def profile_config(name: str):
     from phirie_jax.construct.physics.config import AdaptiveCoacd, CoacdConfig, DropTestConfig, PhysicsConfig
 
-    adaptive = AdaptiveCoacd() if name == "adaptive" else AdaptiveCoacd(enabled=False)
-    return PhysicsConfig(coacd=CoacdConfig(adaptive=adaptive), drop_test=DropTestConfig(backend="mujoco"))
+    adaptive = AdaptiveCoacd(enabled=name != "fixed")
+    merge = "volume" if name == "adaptive" else "coacd"
+    return PhysicsConfig(coacd=CoacdConfig(adaptive=adaptive, merge=merge), drop_test=DropTestConfig(backend="mujoco"))
 
 
 def _start(threads: int) -> None:
@@ -116,23 +121,24 @@ def synthetic_items(seeds: int) -> list[dict]:
     return items
 
 
-def guard(rows: list[dict]) -> dict:
-    """Per object the adaptive against the fixed profile: ratio change, verdicts, CPU seconds."""
+def guard(rows: list[dict], baseline: str, profile: str) -> dict:
+    """Per object ``profile`` against ``baseline``: ratio change, verdicts, CPU seconds."""
     pairs = {}
     for r in rows:
         pairs.setdefault((r["source"], r["object"]), {})[r["profile"]] = r
     changes, changed_verdicts, objects = [], [], []
     for (source, obj), p in pairs.items():
-        if set(p) != set(PROFILES):
+        if baseline not in p or profile not in p:
             continue
-        delta = p["adaptive"]["hull_volume_ratio"] - p["fixed"]["hull_volume_ratio"]
+        delta = p[profile]["hull_volume_ratio"] - p[baseline]["hull_volume_ratio"]
         changes.append(abs(delta))
-        if p["adaptive"]["stable"] != p["fixed"]["stable"]:
+        if p[profile]["stable"] != p[baseline]["stable"]:
             changed_verdicts.append({"source": source, "object": obj})
         objects.append({"source": source, "object": obj, "ratio_change": round(delta, 4),
-                        "cpu_s": [p["fixed"]["cpu_s"], p["adaptive"]["cpu_s"]],
-                        "parts": [p["fixed"]["parts"], p["adaptive"]["parts"]]})
-    return {"ratio_bound": RATIO_BOUND, "max_ratio_change": round(max(changes, default=0.0), 4),
+                        "cpu_s": [p[baseline]["cpu_s"], p[profile]["cpu_s"]],
+                        "parts": [p[baseline]["parts"], p[profile]["parts"]]})
+    return {"baseline": baseline, "profile": profile,
+            "ratio_bound": RATIO_BOUND, "max_ratio_change": round(max(changes, default=0.0), 4),
             "ratio_within_bound": all(c <= RATIO_BOUND for c in changes),
             "verdicts_unchanged": not changed_verdicts, "changed_verdicts": changed_verdicts, "objects": objects}
 
@@ -161,7 +167,10 @@ def main() -> None:
     parser.add_argument("--synthetic", action="store_true", help="also the synthetic categories and an annulus")
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--workers", type=int, default=1, help="worker processes (one OpenMP thread each)")
-    parser.add_argument("--profiles", nargs="+", default=list(PROFILES), choices=PROFILES)
+    parser.add_argument("--profiles", nargs="+", default=["fixed", "adaptive"], choices=PROFILES,
+                        help="fixed: CoACD's settings and merge; coacd_merge: the adaptive settings with CoACD's "
+                             "merge; adaptive: the default (adaptive settings, collision.merge_parts)")
+    parser.add_argument("--baseline", choices=PROFILES, default="fixed", help="what the guard compares against")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
@@ -184,7 +193,9 @@ def main() -> None:
                      "max_hull_vertices": fixed.max_hull_vertices, "resolution": fixed.coacd.resolution,
                      "fixed_mcts_iterations": fixed.coacd.mcts_iterations,
                      "adaptive": dataclasses.asdict(adaptive.coacd.adaptive)},
-          "summary": summary(rows), "guard": guard(rows), "rows": rows}, args.out)
+          "summary": summary(rows),
+          "guard": {p: guard(rows, args.baseline, p) for p in args.profiles if p != args.baseline},
+          "rows": rows}, args.out)
 
 
 if __name__ == "__main__":

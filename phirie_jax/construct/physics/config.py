@@ -28,6 +28,7 @@ from phirie_jax.ranges import (
 
 DropBackend = Literal["auto", "mjx", "warp", "mujoco"]
 Solver = Literal["newton", "cg"]
+Merge = Literal["volume", "coacd"]
 Jacobian = Literal["dense", "sparse"]
 Preprocess = Literal["auto", "on", "off"]
 SceneBackground = Literal["supports", "plane"]
@@ -148,6 +149,10 @@ class CoacdConfig:
             hulls than its defaults (physics_notes.md "CoACD tree search").
         adaptive: the settings above adapted to each object's size and complexity
             (``AdaptiveCoacd``; its ``enabled`` False keeps them fixed).
+        merge: how parts past ``PhysicsConfig.max_parts`` are merged: "volume" (ours: CoACD
+            uncapped, then the pair whose joint hull fills the thinnest gap first,
+            ``collision.merge_parts``; concave objects 1.1–1.8× faster) or "coacd" (CoACD's own
+            merge by its sampled concavity).
         threads: OpenMP threads of each worker process (CoACD runs parts of its search in an
             OpenMP team, one thread per core unless told): 0 = the CPU cores shared among the
             workers (``PhysicsConfig.workers``), at least one each (with one worker per core: one
@@ -162,13 +167,14 @@ class CoacdConfig:
     mcts_iterations: int = 60
     seed: int = 0
     adaptive: AdaptiveCoacd = AdaptiveCoacd()
+    merge: Merge = "volume"
     threads: int = 0
 
     def __post_init__(self):
         check_ranges(self, {
             "threshold": POSITIVE_FRACTION, "preprocess": Choice.of(Preprocess),
             "preprocess_resolution": AT_LEAST_ONE, "resolution": AT_LEAST_ONE, "mcts_nodes": AT_LEAST_ONE,
-            "mcts_iterations": AT_LEAST_ONE, "seed": NON_NEGATIVE,
+            "mcts_iterations": AT_LEAST_ONE, "seed": NON_NEGATIVE, "merge": Choice.of(Merge),
             "threads": Range(0, bound="0: the cores shared among the workers")})
 
 

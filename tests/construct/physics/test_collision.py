@@ -191,3 +191,65 @@ def annulus_arrays(r_min: float, r_max: float):
 def sphere_arrays(radius: float):
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
     return mesh.vertices, mesh.faces
+
+
+def box_corners(low, size=(1.0, 1.0, 1.0)) -> np.ndarray:
+    low, size = np.asarray(low, np.float64), np.asarray(size, np.float64)
+    return low + size * np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], np.float64)
+
+
+def inside_hull(points: np.ndarray, part: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(part)
+    return np.all(points @ hull.equations[:, :3].T + hull.equations[:, 3] <= tol, axis=1)
+
+
+def reference_merge(parts: list[np.ndarray], count: int) -> list[np.ndarray]:
+    """merge_parts without its cache: every pair's cost recomputed at every step."""
+    from scipy.spatial import ConvexHull
+
+    parts = [np.asarray(p, np.float64) for p in parts]
+    while len(parts) > count:
+        best = None
+        for i in range(len(parts)):
+            for j in range(i + 1, len(parts)):
+                joint = ConvexHull(np.concatenate([parts[i], parts[j]]))
+                gap = (joint.volume - ConvexHull(parts[i]).volume - ConvexHull(parts[j]).volume) / joint.area
+                if best is None or gap < best[0]:
+                    best = (gap, i, j)
+        _, i, j = best
+        joint = np.concatenate([parts[i], parts[j]])
+        parts[i] = joint[ConvexHull(joint).vertices]
+        del parts[j]
+    return parts
+
+
+def test_merging_joins_the_parts_that_leave_no_gap_first():
+    cubes = [box_corners((0, 0, 0)), box_corners((10, 0, 0)), box_corners((1, 0, 0)), box_corners((11, 0, 0))]
+    merged = collision.merge_parts(cubes, 2)
+    spans = sorted((p[:, 0].min(), p[:, 0].max()) for p in merged)
+    assert spans == [(0.0, 2.0), (10.0, 12.0)]                          # the touching pairs, no bridge
+    assert [collision._hull_volume(p) for p in merged] == pytest.approx([2.0, 2.0])
+    assert len(collision.merge_parts(cubes, 4)) == 4 and len(collision.merge_parts(cubes[:3], 5)) == 3
+
+
+def test_merged_parts_hold_their_inputs_and_equal_the_slow_reference():
+    rng = np.random.default_rng(3)
+    parts = [rng.normal(centre, 0.15, (10, 3)) for centre in rng.uniform(-1, 1, (9, 3))]
+    merged = collision.merge_parts(parts, 4)
+    reference = reference_merge(parts, 4)
+    assert len(merged) == len(reference) == 4
+    for ours, slow in zip(merged, reference):
+        assert np.array_equal(np.unique(ours, axis=0), np.unique(slow, axis=0))
+    for part in parts:                                                    # every input point in a merged hull
+        assert any(inside_hull(part, m).all() for m in merged)
+
+
+def test_a_ring_merged_to_few_parts_keeps_its_hole():
+    mesh = annulus()
+    config = PhysicsConfig(coacd=FAST.coacd, max_parts=4)
+    result = collision_from_mesh(mesh.vertices, mesh.faces, config)
+    assert result.report["method"] == "coacd" and result.report["parts"] <= 4
+    centre_inside = [Delaunay(p.vertices).find_simplex([[0.0, 0.0, 0.0]])[0] >= 0 for p in result.parts]
+    assert not any(centre_inside)
