@@ -75,6 +75,7 @@ from phirie_jax.render import (
     next_power_of_two,
     pad_gaussians,
     quarter_octave,
+    room_for,
 )
 from phirie_jax.rotations import pose_matrix
 from phirie_jax.types import Camera
@@ -349,12 +350,6 @@ def _static_views(background: Gaussians, Ks, world_to_cameras, *, width: int, he
                                              config=config))(Ks, world_to_cameras)
 
 
-def room_for(used: int) -> int:
-    """Slots for a list that held ``used`` entries: a quarter octave past it with a quarter to
-    spare, as objects move between renders."""
-    return quarter_octave(used + used // 4)
-
-
 @dataclasses.dataclass(frozen=True)
 class WorldCapacities:
     """Slots of one image's lists (``rasterize_changed_tiles``), shared by every world and camera."""
@@ -366,14 +361,15 @@ class WorldCapacities:
 
     def grown(self, use: TileUse, num_tiles: int) -> WorldCapacities:
         """Room for the largest use (``TileUse`` of every image); unchanged where it fitted. What
-        grows grows to ``room_for`` its use (the changed tiles at most all of the image's): the
+        grows to ``room_for`` its use with a quarter to spare, as objects move between renders
+        (the changed tiles at most all of the image's): the
         rule by which ``WorldRenderer`` sizes the lists before its first render, so that growing
         to fit and counting ahead agree."""
         moving, tiles, entries = (max(1, int(jnp.max(x))) for x in (use.moving, use.tiles, use.static_entries))
         return WorldCapacities(
-            self.moving if moving <= self.moving else room_for(moving),
-            self.tiles if tiles <= self.tiles else min(num_tiles, room_for(tiles)),
-            self.entries if entries <= self.entries else room_for(entries),
+            self.moving if moving <= self.moving else room_for(moving, spare=4),
+            self.tiles if tiles <= self.tiles else min(num_tiles, room_for(tiles, spare=4)),
+            self.entries if entries <= self.entries else room_for(entries, spare=4),
             self.longest)
 
 
