@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import shutil
 import sys
 import time
@@ -94,12 +93,18 @@ class Run:
     collision: Any = None        # physics.stage.CollisionJob started ahead of the physics stage, or None
     kept: frozenset | None = None  # ids of the objects kept when it started (the background assumes they stay)
     manifest: Manifest | None = None  # the stages' records so far (written after each stage)
+    # [(frame, scene in it)]: the one list shared by every Run that dataclasses.replace derives from this one
+    moved: list = dataclasses.field(default_factory=list, compare=False, repr=False)
 
-    @functools.cached_property
+    @property
     def scene(self) -> SceneInput:
+        """The capture in the world frame: moved once per frame, and shared with the runs derived
+        from this one (moving a capture's Gaussians with their spherical harmonics takes seconds)."""
         if self.frame is None:
             raise RuntimeError("the frame stage has not run")
-        return self.frame.apply(self.capture)
+        if not self.moved or self.moved[0][0] is not self.frame:
+            self.moved[:] = [(self.frame, self.frame.apply(self.capture))]
+        return self.moved[0][1]
 
 
 KNOWN_SIZE_TOLERANCE = 0.01  # --known-size observes again when the scale changes by more than this

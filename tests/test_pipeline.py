@@ -117,3 +117,26 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
     assert b["removed"] < b0["removed"]
     capture = read_gaussian_ply(scene_dir / "point_cloud.ply")
     assert read_gaussian_ply(copy / b["path"]).num == capture.num - b["removed"] + b["filled"]
+
+
+def test_a_run_moves_its_capture_once_per_frame_and_shares_it_with_the_runs_derived_from_it():
+    import dataclasses
+    import types
+    from pathlib import Path
+
+    from phirie_jax.pipeline import ConvertConfig, Run
+
+    moves = []
+
+    def frame():
+        return types.SimpleNamespace(apply=lambda capture: moves.append(capture) or f"{capture} in the world")
+
+    run = Run("capture", Path("out"), ConvertConfig())
+    with pytest.raises(RuntimeError, match="frame stage"):
+        run.scene
+    run = dataclasses.replace(run, frame=frame())
+    assert run.scene == "capture in the world" and len(moves) == 1
+    derived = dataclasses.replace(run, kept=frozenset({1}))       # as the collision job's start derives one
+    assert derived.scene is run.scene and len(moves) == 1
+    rescaled = dataclasses.replace(derived, frame=frame())        # --known-size: a new frame moves it again
+    assert rescaled.scene == "capture in the world" and len(moves) == 2
