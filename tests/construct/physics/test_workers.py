@@ -96,3 +96,22 @@ def test_each_worker_gets_its_share_of_the_cores(tmp_path):
     told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd=CoacdConfig(threads=3)),
                          build=environment_build)
     assert told[0]["update"]["omp"] == "3"
+
+
+def identity_build(entry, category, out_dir, config):
+    """(In a worker.) The entry's id."""
+    return {"update": {"built": entry.id}}
+
+
+def test_the_largest_meshes_start_first_and_the_outcomes_keep_their_order(tmp_path):
+    from phirie_jax.construct.physics.config import PhysicsConfig
+    from phirie_jax.construct.physics.stage import build_objects, longest_first
+    from phirie_jax.records import ObjectRecord
+
+    for ident, size in ((1, 10), (2, 3000), (5, 200)):
+        (tmp_path / f"{ident}.obj").write_text("v 0 0 0\n" * size)
+    entries = [ObjectRecord(id=1, mesh="1.obj"), ObjectRecord(id=2, mesh="2.obj"), ObjectRecord(id=3),
+               ObjectRecord(id=4, mesh="missing.obj"), ObjectRecord(id=5, mesh=str(tmp_path / "5.obj"))]
+    assert longest_first(entries, tmp_path) == [1, 4, 0, 2, 3]             # no mesh or no file: last, in order
+    outcomes = build_objects(entries, {}, tmp_path, PhysicsConfig(workers=2), build=identity_build)
+    assert [o["update"]["built"] for o in outcomes] == [1, 2, 3, 4, 5]
