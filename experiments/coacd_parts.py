@@ -11,8 +11,9 @@ completed meshes the physics stage decomposes, their poses and categories), and 
 ``--synthetic`` the synthetic categories' own meshes (``--seeds`` each) and an annulus. Profiles:
 ``fixed`` (``AdaptiveCoacd(enabled=False)`` and CoACD's own merge: threshold 0.05, 60 tree-search
 iterations, the repaired mesh of ≤ 40K triangles), ``coacd_merge`` (the settings adapted to each
-object's size and complexity, ``collision.coacd_settings``, with CoACD's own merge) and
-``adaptive`` (the default ``PhysicsConfig``: adapted settings, ``collision.merge_parts``). Each
+object's size and complexity, ``collision.coacd_settings``, with CoACD's own merge),
+``resolution_2000`` (the default but for CoACD's own concavity sampling, 2000) and ``adaptive``
+(the default ``PhysicsConfig``: adapted settings, ``collision.merge_parts``). Each
 object is built in a worker process with one OpenMP thread (as the physics stage's workers run
 with one worker per core), so its CPU seconds are its time on one core. The guard: for every
 object, each profile's ratio within ``RATIO_BOUND`` of the ``--baseline`` one and the same
@@ -37,14 +38,16 @@ import numpy as np
 from experiments.report import emit
 
 RATIO_BOUND = 0.1   # |profile − baseline| hull-volume ratio, per object
-PROFILES = ("fixed", "coacd_merge", "adaptive")
+PROFILES = ("fixed", "coacd_merge", "resolution_2000", "adaptive")
 
 
 def profile_config(name: str):
     from phirie_jax.construct.physics.config import AdaptiveCoacd, CoacdConfig, DropTestConfig, PhysicsConfig
 
     adaptive = AdaptiveCoacd(enabled=name != "fixed")
-    merge = "volume" if name == "adaptive" else "coacd"
+    if name == "resolution_2000":
+        adaptive = AdaptiveCoacd(resolution=CoacdConfig.resolution)
+    merge = "coacd" if name in ("fixed", "coacd_merge") else "volume"
     return PhysicsConfig(coacd=CoacdConfig(adaptive=adaptive, merge=merge), drop_test=DropTestConfig(backend="mujoco"))
 
 
@@ -169,7 +172,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="worker processes (one OpenMP thread each)")
     parser.add_argument("--profiles", nargs="+", default=["fixed", "adaptive"], choices=PROFILES,
                         help="fixed: CoACD's settings and merge; coacd_merge: the adaptive settings with CoACD's "
-                             "merge; adaptive: the default (adaptive settings, collision.merge_parts)")
+                             "merge; resolution_2000: the default at CoACD's sampling resolution; adaptive: the "
+                             "default (adaptive settings, collision.merge_parts)")
     parser.add_argument("--baseline", choices=PROFILES, default="fixed", help="what the guard compares against")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()

@@ -307,6 +307,7 @@ class CoacdSettings:
 
     threshold: float
     mcts_iterations: int
+    resolution: int      # CoACD's sampling resolution of its concavity measure
     max_triangles: int   # CoACD's input simplified to at most this many triangles (0: as repaired)
     tier: str            # "fixed" (adaptive settings off), "nearly convex" or "concave"
     solidity: float      # mesh volume / convex hull volume (1 for an open mesh: unknown)
@@ -314,6 +315,7 @@ class CoacdSettings:
 
     def record(self) -> dict:
         return {"threshold": round(self.threshold, 4), "mcts_iterations": self.mcts_iterations,
+                "resolution": self.resolution,
                 "max_triangles": self.max_triangles, "tier": self.tier, "solidity": round(self.solidity, 4),
                 "extent_m": round(self.extent, 4)}
 
@@ -321,19 +323,19 @@ class CoacdSettings:
 def coacd_settings(mesh: RepairedMesh, config: PhysicsConfig = PhysicsConfig()) -> CoacdSettings:
     """CoACD's settings for ``mesh`` (``AdaptiveCoacd``): its threshold raised for a small object (an
     absolute tolerance) and for a nearly convex one, fewer tree-search iterations, a simplified
-    input; the fixed ``CoacdConfig`` settings when adaptation is off."""
+    input, a coarser concavity sampling; the fixed ``CoacdConfig`` settings when adaptation is off."""
     coacd = config.coacd
     adaptive = coacd.adaptive
     hull = _hull_volume(mesh.vertices)
     solidity = min(1.0, mesh.volume / hull) if mesh.watertight and hull > 0 else 1.0
     extent = float(np.max(mesh.vertices.max(0) - mesh.vertices.min(0)))
     if not adaptive.enabled:
-        return CoacdSettings(coacd.threshold, coacd.mcts_iterations, 0, "fixed", solidity, extent)
+        return CoacdSettings(coacd.threshold, coacd.mcts_iterations, coacd.resolution, 0, "fixed", solidity, extent)
     threshold = max(coacd.threshold, min(1.0, 2 * adaptive.tolerance / max(extent, 1e-9)))
     convex = mesh.watertight and solidity >= adaptive.convex_solidity
     if convex:
         threshold = max(threshold, adaptive.convex_threshold)
-    return CoacdSettings(threshold, adaptive.mcts_iterations, adaptive.max_triangles,
+    return CoacdSettings(threshold, adaptive.mcts_iterations, adaptive.resolution, adaptive.max_triangles,
                          "nearly convex" if convex else "concave", solidity, extent)
 
 
@@ -363,7 +365,7 @@ def _coacd_parts(mesh: RepairedMesh, config: PhysicsConfig, settings: CoacdSetti
         coacd.Mesh(mesh.vertices, mesh.faces), threshold=settings.threshold,
         max_convex_hull=-1 if ours else config.max_parts,
         preprocess_mode=preprocess, preprocess_resolution=config.coacd.preprocess_resolution,
-        resolution=config.coacd.resolution, mcts_nodes=config.coacd.mcts_nodes,
+        resolution=settings.resolution, mcts_nodes=config.coacd.mcts_nodes,
         mcts_iterations=settings.mcts_iterations, decimate=True, max_ch_vertex=config.max_hull_vertices,
         seed=config.coacd.seed)
     parts = [np.asarray(v, np.float64) for v, _ in result]

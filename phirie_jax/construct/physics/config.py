@@ -115,6 +115,10 @@ class AdaptiveCoacd:
         max_triangles: CoACD decomposes the mesh simplified to this many triangles (the body's
             volume, and the parts' ratio to it, stay those of the repaired mesh).
         mcts_iterations: CoACD's tree-search iterations (the fixed ``CoacdConfig.mcts_iterations``: 60).
+        resolution: CoACD's sampling resolution of its concavity measure (the fixed
+            ``CoacdConfig.resolution``: 2000, CoACD's default); at half of it the concave objects
+            decomposed 2–30 % faster (the slowest 21.0 → 19.0 s) with hull-volume ratios within
+            0.013, and all 19 measured objects' drop tests stayed stable (``coacd_resolution.json``).
         tolerance: metres: an absolute concavity tolerance; CoACD's threshold is relative to the
             object's largest extent, so a small object's threshold is raised to ``2 · tolerance /
             extent`` (it stops at the same absolute detail as a large one).
@@ -127,12 +131,13 @@ class AdaptiveCoacd:
     enabled: bool = True
     max_triangles: int = 8000
     mcts_iterations: int = 30
+    resolution: int = 1000
     tolerance: float = 0.003
     convex_solidity: float = 0.85
     convex_threshold: float = 0.1
 
     def __post_init__(self):
-        check_ranges(self, {"max_triangles": Range(4), "mcts_iterations": AT_LEAST_ONE, "tolerance": NON_NEGATIVE,
+        check_ranges(self, {"max_triangles": Range(4), "mcts_iterations": AT_LEAST_ONE, "resolution": AT_LEAST_ONE, "tolerance": NON_NEGATIVE,
                             "convex_solidity": POSITIVE_FRACTION, "convex_threshold": POSITIVE_FRACTION})
 
 

@@ -158,9 +158,10 @@ def test_coacd_settings_follow_the_objects_size_and_complexity():
     assert concave.threshold == pytest.approx(2 * config.coacd.adaptive.tolerance / 0.1, rel=1e-3)
     assert large.threshold == config.coacd.threshold
     assert concave.mcts_iterations == config.coacd.adaptive.mcts_iterations < config.coacd.mcts_iterations
+    assert concave.resolution == config.coacd.adaptive.resolution < config.coacd.resolution
     fixed = coacd_settings(ring, PhysicsConfig(coacd=CoacdConfig(adaptive=AdaptiveCoacd(enabled=False))))
-    assert (fixed.tier, fixed.threshold, fixed.mcts_iterations, fixed.max_triangles) == (
-        "fixed", config.coacd.threshold, config.coacd.mcts_iterations, 0)
+    assert (fixed.tier, fixed.threshold, fixed.mcts_iterations, fixed.resolution, fixed.max_triangles) == (
+        "fixed", config.coacd.threshold, config.coacd.mcts_iterations, config.coacd.resolution, 0)
 
 
 def test_coacd_decomposes_a_simplified_input_and_keeps_the_repaired_volume(monkeypatch):
