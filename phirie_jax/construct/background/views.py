@@ -324,6 +324,31 @@ class CropRenderer:
         self.renderer = renderer or Renderer()
         self.renders = 0
         self.launches = 0
+        self._uploaded: tuple | None = None   # (data, SH coefficients, its rows on the device)
+
+    def _on_device(self, data: GaussianSplatData, sh_coeffs: int) -> dict[str, jax.Array]:
+        """``data``'s kernel arrays on the device followed by transparent padding rows (from row
+        ``data.num``) up to its bucket (one gather program per bucket), kept for the next pass over
+        the same ``data`` object."""
+        if self._uploaded is None or self._uploaded[0] is not data or self._uploaded[1] != sh_coeffs:
+            self._uploaded = None   # the old rows go before the new ones arrive
+            rows = padded(data, gaussian_bucket(data.num + 1), sh_coeffs)
+            self._uploaded = (data, sh_coeffs, {k: to_device(v) for k, v in rows.items()})
+        return self._uploaded[2]
+
+    def _batch(self, jobs: list[CropJob], per: int, pad_to: int, sh_coeffs: int, shared: GaussianSplatData | None
+               ) -> Gaussians:
+        """The Gaussians of a launch (``per`` rows of ``pad_to``; rows past the jobs' are empty crops):
+        subsets of one ``shared`` set gathered on the device from its rows there, else packed on the host."""
+        if shared is not None:
+            rows = np.full((per, pad_to), shared.num, np.int32)   # the padding row
+            for b, j in enumerate(jobs):
+                rows[b, :len(j.index)] = j.index
+            return Gaussians(**_gather_rows(self._on_device(shared, sh_coeffs), to_device(rows)))
+        arrays = _pad_rows(per, pad_to, sh_coeffs)
+        for b, j in enumerate(jobs):
+            _fill_rows(arrays, b, j.data, j.index)
+        return Gaussians(**{k: to_device(v) for k, v in arrays.items()})
 
     def render(self, data: GaussianSplatData, crop: Crop, pad_to: int, features: np.ndarray | None = None,
                num_features: int = 2, background=None) -> CropImage:
@@ -350,15 +375,14 @@ class CropRenderer:
             raise ValueError(f"render_many: crops of one pass share one size, got {sorted(sizes)}")
         sh_coeffs = max(j.data.sh.shape[1] for j in jobs)
         per = batch_size(pad_to, len(jobs))
+        # subsets of one set (the capture's crops) are gathered on the device from one upload
+        shared = jobs[0].data if all(j.data is jobs[0].data and j.index is not None for j in jobs) else None
         images: list[CropImage] = []
         for start in range(0, len(jobs), per):
             chunk = jobs[start:start + per]
             empty = dataclasses.replace(chunk[0], index=np.zeros(0, np.int64), features=None)
             batch = chunk + [empty] * (per - len(chunk))
-            arrays = _pad_rows(per, pad_to, sh_coeffs)
-            for b, j in enumerate(chunk):
-                _fill_rows(arrays, b, j.data, j.index)
-            g = Gaussians(**{k: to_device(v) for k, v in arrays.items()})
+            g = self._batch(chunk, per, pad_to, sh_coeffs, shared)
             feats = np.stack([_features(j.features, j.num, pad_to, num_features) for j in batch])
             bgs = np.stack([np.zeros(3, np.float32) if j.background is None else np.asarray(j.background, np.float32)
                             for j in batch])
@@ -369,6 +393,12 @@ class CropRenderer:
             self.renders += len(chunk)
             self.launches += 1
         return images
+
+
+@jax.jit
+def _gather_rows(arrays: dict[str, jax.Array], rows: jax.Array) -> dict[str, jax.Array]:
+    """arrays: each (M, ...) kernel array; rows (B, P) int32 → each (B, P, ...)."""
+    return {k: v[rows] for k, v in arrays.items()}
 
 
 def pass_bucket(counts: list[int]) -> int:

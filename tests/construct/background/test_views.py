@@ -72,6 +72,24 @@ def test_batched_crops_equal_crops_rendered_one_by_one(toy_data):
         assert image.alpha.max() > 0.1, "the crop sees its Gaussians"
 
 
+def test_subsets_of_one_set_gathered_on_the_device_equal_subsets_packed_on_the_host(toy_data):
+    data, cams = toy_data
+    rng = np.random.default_rng(4)
+    crops = [make_crop(cam, k, np.array([10 + 2 * k, 8, 70, 60]), (64,), 4) for k, cam in enumerate(cams[:5])]
+    indices = [np.sort(rng.choice(data.num, size=250 + 61 * k, replace=False)) for k in range(5)]
+    pad = pass_bucket([len(i) for i in indices])
+    gathering = CropRenderer()
+    shared = gathering.render_many([CropJob(data, c, i) for c, i in zip(crops, indices)], pad)
+    assert gathering._uploaded is not None and gathering._uploaded[0] is data     # the device path ran
+    packing = CropRenderer()   # a separate copy per job: packed on the host
+    packed = packing.render_many([CropJob(data.subset(i), c) for c, i in zip(crops, indices)], pad)
+    assert packing._uploaded is None
+    for a, b in zip(shared, packed):
+        for field in ("rgb", "alpha", "depth", "features"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    assert max(image.alpha.max() for image in shared) > 0.1, "the crops see their Gaussians"
+
+
 def test_subsets_of_new_sizes_compile_no_new_programs(toy_data):
     data, cams = toy_data
     crop = make_crop(cams[0], 0, np.array([10, 8, 70, 60]), (64,), 4)
