@@ -137,8 +137,9 @@ class AdaptiveCoacd:
     convex_threshold: float = 0.1
 
     def __post_init__(self):
-        check_ranges(self, {"max_triangles": Range(4), "mcts_iterations": AT_LEAST_ONE, "resolution": AT_LEAST_ONE, "tolerance": NON_NEGATIVE,
-                            "convex_solidity": POSITIVE_FRACTION, "convex_threshold": POSITIVE_FRACTION})
+        check_ranges(self, {"max_triangles": Range(4), "mcts_iterations": AT_LEAST_ONE, "resolution": AT_LEAST_ONE,
+                            "tolerance": NON_NEGATIVE, "convex_solidity": POSITIVE_FRACTION,
+                            "convex_threshold": POSITIVE_FRACTION})
 
 
 @dataclasses.dataclass(frozen=True)
