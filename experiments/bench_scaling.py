@@ -363,17 +363,15 @@ def main(argv=None) -> None:
               "cpus": os.cpu_count(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "load_average_at_start": list(os.getloadavg())}
     with contextlib.redirect_stdout(sys.stderr):   # stdout carries the JSON alone (Warp prints a banner)
-        if "worlds" in args.parts:
+        if {"worlds", "steps"} & set(args.parts):
             result["scene"] = str(args.scene)
             made = ensure_scene(args.scene)
             if made is not None:
                 result["scene_made_s"] = made
+        if "worlds" in args.parts:
             result["worlds"] = worlds_part(args, all_devices)
             result["speedup_worlds"] = result["worlds"]["speedup"]
         if "steps" in args.parts:
-            made = ensure_scene(args.scene)
-            if made is not None:
-                result["scene_made_s"] = made
             result["steps"] = steps_part(args, all_devices)
         if "droptests" in args.parts:
             result["droptests"], result["droptests_warp"] = droptests_part(args, all_devices)

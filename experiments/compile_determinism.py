@@ -36,16 +36,14 @@ def run(args) -> dict:
     from experiments.timing import timed_steps
     from phirie_jax.interact.batched import BatchedEnvironment
     from phirie_jax.interact.environment import Environment
+    from phirie_jax.io.atomic import atomic_write
 
     env = Environment.load(args.scene)
     batch = BatchedEnvironment(env, args.worlds, devices=1)
     batch.set_velocities(throws(env, args.worlds, args.throw, args.seed))
     first, call_s = timed_steps(batch, args.steps, args.calls - 1)
-    qpos = np.asarray(batch.data.qpos)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    partial = args.out.with_name(f".{args.out.name}.partial.npy")
-    np.save(partial, qpos)
-    partial.replace(args.out)
+    with atomic_write(args.out) as f:
+        np.save(f, np.asarray(batch.data.qpos))
     return {"device": jax.devices()[0].device_kind, "jax": jax.__version__,
             "xla_flags": os.environ.get("XLA_FLAGS", ""), "worlds": args.worlds, "steps": args.steps * args.calls,
             "compile_s": round(first - call_s, 2),
