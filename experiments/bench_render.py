@@ -315,6 +315,9 @@ def main():
                         help="also time the pure-JAX compositor and compare images and gradients")
     parser.add_argument("--pallas-chunk", type=int, default=PallasSettings.chunk)
     parser.add_argument("--pallas-warps", type=int, default=PallasSettings.num_warps)
+    parser.add_argument("--pallas-backward-chunk", type=int, default=PallasSettings.backward_chunk)
+    parser.add_argument("--pallas-backward-warps", type=int,
+                        default=PallasSettings.backward_num_warps)
     parser.add_argument("--pallas-prefetch", type=int, choices=[0, 1],
                         default=int(PallasSettings.prefetch))
     parser.add_argument("--slots", type=int, default=None)
@@ -339,7 +342,9 @@ def main():
     base = RasterConfig(chunk=args.chunk, slots=args.slots, sequential=args.sequential,
                         compositor=args.compositor,
                         pallas=PallasSettings(chunk=args.pallas_chunk,
+                                              backward_chunk=args.pallas_backward_chunk,
                                               num_warps=args.pallas_warps,
+                                              backward_num_warps=args.pallas_backward_warps,
                                               prefetch=bool(args.pallas_prefetch)))
     result = {
         "scene": args.scene + ("-tiled" if args.tile_scene else ""),

@@ -97,7 +97,8 @@ def _levers(params, valid, mask, K, w2c, bg, target, offset, capacity: int, conf
     """The colour render and the loss gradient per Pallas setting (``LEVER_SETTINGS``)."""
     out = {}
     for chunk, warps, backward_entries_major in LEVER_SETTINGS:
-        settings = PallasSettings(backward_chunk=chunk, num_warps=warps, backward_entries_major=backward_entries_major)
+        settings = PallasSettings(backward_chunk=chunk, backward_num_warps=warps,
+                                  backward_entries_major=backward_entries_major)
         raster = RasterConfig(capacity=capacity, pallas=settings, depth=False)
         fn = jax.jit(lambda g, r=raster: rasterize(g, K, w2c, width=width, height=height, background=bg,
                                                    config=r).rgb)

@@ -41,9 +41,15 @@ class PallasSettings:
     chunk, backward_chunk: list entries composited per step (B, a power of two) in the
         forward and the backward. Larger chunks mean fewer loop steps but more wasted work
         after a tile saturates and more registers. The backward walks only up to each tile's
-        last contributor (no saturated tail): on an H100 (snowmiku, 238K Gaussians,
-        1000×750) 16 took the loss gradient 2.5–4.4 % below 8 on two machines.
-    num_warps: warps per tile program (Triton).
+        last contributor (no saturated tail). On an H100, 1.4M Gaussians at 1920×1080
+        (``experiments/bench_render_backward.py``): 8 took forward+backward from 4.99 to
+        4.76 ms against 16, 4 was no faster, 32 twice as slow; on the smaller snowmiku
+        capture (238K Gaussians, 1000×750) 16 had taken the loss gradient 2.5–4.4 % below 8.
+    num_warps, backward_num_warps: warps per tile program (Triton) of the forward and the
+        backward kernel (a power of two). The backward uses 255 registers a thread at 4
+        warps (12.5 % occupancy on an H100), yet at 1080p 2, 8 or 16 warps took
+        forward+backward 6–67 % longer than 4 at backward chunks 8 and 16 (8 warps beat 4
+        only at chunk 32, itself slower): 4 for both.
     prefetch: load each chunk's list entries two steps and its parameter rows one step
         before they are composited, so the two dependent memory reads overlap the work of
         the chunks before. Measured on an H100 (compositor alone, garden, garden ×10 at
@@ -62,15 +68,16 @@ class PallasSettings:
     """
 
     chunk: int = 8
-    backward_chunk: int = 16
+    backward_chunk: int = 8
     num_warps: int = 4
+    backward_num_warps: int = 4
     prefetch: bool = False
     forward_entries_major: bool = True
     backward_entries_major: bool = False
     interpret: bool = False
 
     def __post_init__(self):
-        for name in ("chunk", "backward_chunk"):
+        for name in ("chunk", "backward_chunk", "num_warps", "backward_num_warps"):
             value = getattr(self, name)
             if value < 1 or value & (value - 1):
                 raise ValueError(f"PallasSettings.{name}: {value} (expected a power of two)")
@@ -306,8 +313,9 @@ def _backward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, ids_re
                                           chunks.initial()))
 
 
-def _compiler_params(settings: PallasSettings):
-    return None if settings.interpret else plgpu.CompilerParams(num_warps=settings.num_warps)
+def _compiler_params(settings: PallasSettings, num_warps: int):
+    """Triton's launch settings for a kernel of ``num_warps`` warps (none when interpreted)."""
+    return None if settings.interpret else plgpu.CompilerParams(num_warps=num_warps)
 
 
 def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists):
@@ -322,7 +330,7 @@ def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, l
                    jax.ShapeDtypeStruct((nt, npix), jnp.int32)),
         grid=(nt,),
         interpret=settings.interpret,
-        compiler_params=_compiler_params(settings),
+        compiler_params=_compiler_params(settings, settings.num_warps),
         name="composite_forward",
     )(lists.tile_start, lists.tile_count, lists.gaussian_ids, params)
     return jnp.swapaxes(acc, 1, 2), trans, last
@@ -339,7 +347,7 @@ def composite_pallas_backward(grid: TileGrid, settings: PallasSettings, params, 
         grid=(grid.num_tiles,),
         input_output_aliases={7: 0},
         interpret=settings.interpret,
-        compiler_params=_compiler_params(settings),
+        compiler_params=_compiler_params(settings, settings.backward_num_warps),
         name="composite_backward",
     )(lists.tile_start, lists.gaussian_ids, params, trans, last,
       jnp.swapaxes(g_acc, 1, 2).astype(params.dtype), g_trans.astype(params.dtype),

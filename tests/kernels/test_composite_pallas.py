@@ -6,6 +6,7 @@ Triton (the GPU path) without a GPU."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -27,11 +28,12 @@ CHUNK = 8           # small, so a tile list spans several chunks
 JAX = RasterConfig(capacity=1 << 11, compositor="jax", chunk=CHUNK, slots=2)
 PALLAS = RasterConfig(capacity=1 << 11, compositor="pallas",
                       pallas=PallasSettings(chunk=CHUNK, interpret=True))
-# the other block orientation in each kernel than the defaults, and the forward's chunk size
-# in the backward
+# the other block orientation in each kernel than the defaults, and twice the default backward
+# chunk
 FLIPPED = dataclasses.replace(PALLAS, pallas=dataclasses.replace(
     PALLAS.pallas, forward_entries_major=not PALLAS.pallas.forward_entries_major,
-    backward_entries_major=not PALLAS.pallas.backward_entries_major, backward_chunk=CHUNK))
+    backward_entries_major=not PALLAS.pallas.backward_entries_major,
+    backward_chunk=2 * PALLAS.pallas.backward_chunk))
 
 
 def single_gaussian(K, w2c, n: int) -> Gaussians:
@@ -119,12 +121,21 @@ def test_lists_cut_by_the_capacity_composite_alike():
                                    err_msg=f"read ahead {key}")
 
 
+@pytest.mark.parametrize("field", ["chunk", "backward_chunk", "num_warps", "backward_num_warps"])
+@pytest.mark.parametrize("value", [0, 3, 6])
+def test_settings_want_powers_of_two(field, value):
+    """Chunks and warp counts that are not powers of two are refused, naming the field."""
+    with pytest.raises(ValueError, match=f"PallasSettings.{field}: {value}"):
+        PallasSettings(**{field: value})
+
+
 @pytest.mark.parametrize("entries_major", [False, True])
 def test_kernels_lower_to_triton(entries_major):
     """Forward and backward kernels lower to Triton for a CUDA target (no GPU needed), in
-    either block orientation."""
+    either block orientation, each launched with its own warp count."""
     grid = TileGrid(WIDTH, HEIGHT)
-    settings = PallasSettings(chunk=16, backward_chunk=8, forward_entries_major=entries_major,
+    settings = PallasSettings(chunk=16, backward_chunk=8, num_warps=4, backward_num_warps=2,
+                              forward_entries_major=entries_major,
                               backward_entries_major=entries_major)
     n, capacity = 64, 512
 
@@ -139,5 +150,5 @@ def test_kernels_lower_to_triton(entries_major):
                              disabled_checks=[export.DisabledSafetyCheck.custom_call(
                                  "__gpu$xla.gpu.triton")])(*args)
     module = exported.mlir_module()
-    assert module.count('name = "composite_forward"') == 1
-    assert module.count('name = "composite_backward"') == 1
+    assert re.findall(r'name = "composite_forward"[^}]*num_warps = (\d+)', module) == ["4"]
+    assert re.findall(r'name = "composite_backward"[^}]*num_warps = (\d+)', module) == ["2"]
