@@ -1,13 +1,16 @@
-"""Shared fixtures: float64 switch, the real-data folder; Warp's compile options for the tests."""
+"""Shared fixtures: float64 switch, the real-data folder; XLA's and Warp's compile options for
+the tests."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import jax
-import pytest
+from tests.compile_settings import compile_quickly, compile_xla_quickly
 
-from tests.compile_settings import compile_quickly
+compile_xla_quickly()  # before JAX starts: compile time over run time (tests/compile_settings.py)
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
