@@ -12,9 +12,25 @@ compile_xla_quickly()  # before JAX starts: compile time over run time (tests/co
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TESTS = Path(__file__).resolve().parent
+SHARED_DATA = TESTS.parents[1] / "shared" / "data"
+
+# The test files that take longest on a 2-core machine (each a minute or more of compiling and
+# converting), run first: with ``--dist loadfile`` pytest-xdist hands out whole files in collection
+# order, so a long file left for the end keeps one worker busy while the other has nothing to do.
+LONGEST_FIRST = ("cluster/test_convert_many.py", "capture/test_command.py", "view/test_browser.py",
+                 "interact/test_batched_warp.py", "test_pipeline.py", "interact/test_world_renderer.py",
+                 "kernels/test_raster_merge.py", "capture/test_train.py", "test_output_folder.py",
+                 "construct/background/test_stage.py", "kernels/test_composite_pallas.py")
 
 compile_quickly()  # Warp's CPU kernels: compile time over run time (tests/compile_settings.py)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The files of ``LONGEST_FIRST`` first, in that order; the others after them, as collected
+    (a stable sort: the tests of a file keep their order)."""
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.relative_to(TESTS).as_posix(), len(rank)))
 
 
 @pytest.fixture
