@@ -23,6 +23,8 @@ training view:
   training loop calls them (a host sync per step) against 50 dispatched without syncing;
 - the same step on the exact count (no padding) and at the tight capacity.
 
+The step and the loop use training's raster settings (``phirie_jax.capture.train.TRAINING_RASTER``).
+
 ``--loop N`` runs ``train_gaussians`` itself on the one view for N steps (no densification, every
 SH band on): its median step with 2, 3 and 4 steps in flight, and with the photo already on the
 device, against the parts above (where the loop's time goes beyond the step's own).
@@ -47,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.profiling import kernel_summary
+from experiments.profiling import traced
 from experiments.timing import timed
 from kernels import splat_fit
 from kernels.composite import TileGrid
@@ -56,7 +58,7 @@ from kernels.project import project_gaussians
 from kernels.raster import RasterConfig, bin_gaussians, rasterize
 from phirie_jax.capture.config import TrainConfig
 from phirie_jax.capture.densify import padded
-from phirie_jax.capture.train import CAPACITY_PER_GAUSSIAN, MIN_CAPACITY, learning_rates, sh_mask
+from phirie_jax.capture.train import CAPACITY_PER_GAUSSIAN, MIN_CAPACITY, TRAINING_RASTER, learning_rates, sh_mask
 from phirie_jax.render import gaussian_bucket, next_power_of_two
 from phirie_jax.types import GaussianSplatData
 
@@ -190,12 +192,12 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
             jax.lax.stop_gradient(project_gaussians(g, K, w2c, width=width, height=height)), grid, c))
         parts[name] = _ms(timed(lambda f=fn: f(g_masked), REPEATS))
     for name, capacity in (("forward", loop_capacity), ("forward_tight", tight)):
-        raster = RasterConfig(capacity=capacity)
+        raster = dataclasses.replace(TRAINING_RASTER, capacity=capacity)
         fn = jax.jit(lambda g, r=raster: rasterize(g, K, w2c, width=width, height=height, background=bg,
                                                    config=r).rgb)
         parts[name] = _ms(timed(lambda f=fn: f(g_masked), REPEATS))
 
-    raster = RasterConfig(capacity=loop_capacity)
+    raster = dataclasses.replace(TRAINING_RASTER, capacity=loop_capacity)
     target = splat_fit.as_float_image(image)
     offset = jnp.zeros((size, 2), jnp.float32)
     loss_grad = jax.jit(jax.value_and_grad(
@@ -243,11 +245,11 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
             "train_step_donated": (params, valid, loop_capacity, True),
             "train_step_tight": (params, valid, tight, True),
             "train_step_unpadded_tight": (exact_params, exact_valid, tight, True)}.items():
-        fn = step_fn(RasterConfig(capacity=cap), donate)
+        fn = step_fn(dataclasses.replace(TRAINING_RASTER, capacity=cap), donate)
         t0 = time.perf_counter()
-        per_step = run_steps(fn, jax.tree.map(jnp.copy, p), v, RasterConfig(capacity=cap), REPEATS, sync=True)
+        per_step = run_steps(fn, jax.tree.map(jnp.copy, p), v, dataclasses.replace(TRAINING_RASTER, capacity=cap), REPEATS, sync=True)
         parts[name] = {"first_and_run_s": round(time.perf_counter() - t0, 3), "ms": round(per_step * 1e3, 3)}
-    fn = step_fn(RasterConfig(capacity=loop_capacity), True)
+    fn = step_fn(dataclasses.replace(TRAINING_RASTER, capacity=loop_capacity), True)
     result["memory"] = _memory(fn, params, valid, mask, K, w2c, image, bg, lrs, raster, config)
     for sync in (True, False):
         per_step = run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 50, sync)
@@ -259,10 +261,9 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
         result["levers"] = _levers(params, valid, mask, K, w2c, bg, target, offset, loop_capacity, config,
                                    width, height, g_masked)
     if trace is not None:
-        trace.mkdir(parents=True, exist_ok=True)
-        with jax.profiler.trace(str(trace), create_perfetto_trace=True):
-            run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 20, True)
-        result["trace_summary"] = kernel_summary(trace, calls=20)
+        result["trace_summary"] = traced(  # per step of 20
+            lambda: run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 20, True), 1, trace,
+            calls_per_work=20)
     return result
 
 

@@ -44,9 +44,10 @@ class PallasSettings:
         last contributor (no saturated tail). On an H100, 1.4M Gaussians at 1920×1080
         (``experiments/bench_render_backward.py``): 8 took forward+backward from 4.99 to
         4.76 ms against 16, 4 was no faster, 32 twice as slow. At a training view's scale
-        the better chunk depends on the scene by about 5 %: garden's cameras (138K, 648×420)
+        the better chunk depends on the scene, by up to 7 %: garden's cameras (138K, 648×420)
         8 as fast or faster, 100K random Gaussians at 640×480 16 faster by 7 %, the snowmiku
-        capture (238K, 1000×750) 16 faster by 2.5–4.4 % (loss gradient).
+        capture (238K, 1000×750) 16 faster by 2.5–4.4 % (loss gradient); training keeps 16
+        (``phirie_jax.capture.train.TRAINING_RASTER``).
     num_warps, backward_num_warps: warps per tile program (Triton) of the forward and the
         backward kernel (a power of two). The backward uses 255 registers a thread at 4
         warps (12.5 % occupancy on an H100), yet at 1080p 2, 8 or 16 warps took

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from kernels import splat_fit
+from kernels.composite_pallas import PallasSettings
 from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig
 from kernels.sh import num_sh_coeffs, rgb_to_sh_dc
@@ -58,6 +59,10 @@ FIRST_CAPACITY_MARGIN = 1.5    # ... or the busiest view's count at the start ×
 EXTENT_MARGIN = 1.1            # gsplat's scene scale: 1.1 × the largest camera distance from their mean
 RESET_CEILING = 2.0            # an opacity reset clamps opacities to this × min_opacity (gsplat)
 CHECKPOINT_VERSION = 1
+# Training's renders (the capacity set per run): the compositor's backward walks chunks of 16 list
+# entries, not the renderer's 8 (``PallasSettings.backward_chunk``: faster at a training view's
+# scale on the real captures measured; 8 is the renderer's choice at 1080p).
+TRAINING_RASTER = RasterConfig(pallas=PallasSettings(backward_chunk=16))
 IN_FLIGHT = 2                  # steps dispatched before the oldest is checked (its host work overlaps the next)
 # While a thread traces programs ahead (pure Python, holding the GIL), the loop waits for the GIL
 # each time it gets it back from a blocking call: up to Python's switch interval (5 ms) each time.
@@ -298,7 +303,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
     size = gaussian_bucket(init.num)
     params, valid = padded(init, size)
     state = splat_fit.init_state(params)
-    raster = RasterConfig()
+    raster = TRAINING_RASTER
     grad_sum, seen = jnp.zeros(size), jnp.zeros(size)
     loop = _Loop(buckets={size})
     resumed_at = None
@@ -308,7 +313,7 @@ def train_gaussians(init: GaussianSplatData, views: Views, extent: float, config
         count = int(valid.sum())
     else:
         count = init.num  # the valid Gaussians, kept on the host (reading the device's would wait for it)
-        raster = RasterConfig(capacity=first_capacity(params, valid, views))
+        raster = dataclasses.replace(TRAINING_RASTER, capacity=first_capacity(params, valid, views))
     start_capacity = raster.capacity
     bg = jnp.asarray(background, jnp.float32)
     step_fn = _train_step_donated if donate else _train_step
