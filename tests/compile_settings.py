@@ -30,7 +30,7 @@ import subprocess
 import sys
 
 XLA_CPU_FLAG = "--xla_cpu_use_fusion_emitters=false"
-TRIED = "PHIRIE_TESTS_XLA_CPU_FLAG"  # "taken" or "refused" once tried in this session
+PROBE_RESULT_ENV = "PHIRIE_TESTS_XLA_CPU_FLAG"  # "taken" or "refused" once tried in this session
 TRY_SECONDS = 120
 
 
@@ -41,16 +41,26 @@ def compile_xla_quickly() -> None:
     if XLA_CPU_FLAG.split("=")[0] in flags:
         return
     with_flag = f"{flags} {XLA_CPU_FLAG}".strip()
-    if TRIED not in os.environ:
+    if PROBE_RESULT_ENV not in os.environ:
         probe = [sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(2).sum().block_until_ready()"]
         try:
             accepted = subprocess.run(probe, env={**os.environ, "XLA_FLAGS": with_flag, "JAX_PLATFORMS": "cpu"},
                                       capture_output=True, timeout=TRY_SECONDS).returncode == 0
         except subprocess.TimeoutExpired:
             accepted = False
-        os.environ[TRIED] = "taken" if accepted else "refused"
-    if os.environ[TRIED] == "taken":
+        os.environ[PROBE_RESULT_ENV] = "taken" if accepted else "refused"
+    if os.environ[PROBE_RESULT_ENV] == "taken":
         os.environ["XLA_FLAGS"] = with_flag
+
+
+def xla_flag_outcome() -> str:
+    """One line on what ``compile_xla_quickly`` decided, for the test run's header."""
+    outcome = os.environ.get(PROBE_RESULT_ENV)
+    if outcome is None:
+        return f"XLA_FLAGS as given ({os.environ.get('XLA_FLAGS', '')!r}): not tried"
+    if outcome == "refused":
+        return f"XLA refused {XLA_CPU_FLAG} (or did not start in {TRY_SECONDS} s): XLA's default CPU emitters"
+    return f"XLA_FLAGS: {os.environ.get('XLA_FLAGS', '')}"
 
 
 def compile_quickly() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tests.compile_settings import compile_quickly, compile_xla_quickly
+from tests.compile_settings import compile_quickly, compile_xla_quickly, xla_flag_outcome
 
 compile_xla_quickly()  # before JAX starts: compile time over run time (tests/compile_settings.py)
 
@@ -26,11 +26,20 @@ LONGEST_FIRST = ("cluster/test_convert_many.py", "capture/test_command.py", "vie
 compile_quickly()  # Warp's CPU kernels: compile time over run time (tests/compile_settings.py)
 
 
+def pytest_report_header(config):
+    return xla_flag_outcome()
+
+
 def pytest_collection_modifyitems(config, items):
     """The files of ``LONGEST_FIRST`` first, in that order; the others after them, as collected
-    (a stable sort: the tests of a file keep their order)."""
+    (a stable sort: the tests of a file keep their order; items outside this folder come last)."""
     rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.relative_to(TESTS).as_posix(), len(rank)))
+
+    def place(item) -> int:
+        path = Path(item.path).resolve()
+        return rank.get(path.relative_to(TESTS).as_posix(), len(rank)) if path.is_relative_to(TESTS) else len(rank)
+
+    items.sort(key=place)
 
 
 @pytest.fixture
