@@ -27,7 +27,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from experiments.profiling import kernel_summary
+from experiments.profiling import traced
 from experiments.report import emit
 from experiments.timing import timed, timed_steps
 from kernels.composite_pallas import PallasSettings
@@ -103,10 +103,8 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
             "max_abs_uint8_difference": int(difference.max()),
             "share_of_pixels_equal": round(float(np.mean(difference == 0)), 6)}
     if trace is not None:
-        with jax.profiler.trace(str(trace), create_perfetto_trace=True):
-            for _ in range(3):
-                jax.block_until_ready(batch.render(cameras, max_images=max_images, pixels="uint8"))
-        result["uint8_render_kernels"] = kernel_summary(trace, calls=3)
+        result["uint8_render_kernels"] = traced(
+            lambda: jax.block_until_ready(batch.render(cameras, max_images=max_images, pixels="uint8")), 3, trace)
     if loop:
         result.update(_loop_baseline(env, worlds, cameras, steps, step_s, pixels_s))
     return result

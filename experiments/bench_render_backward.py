@@ -17,15 +17,22 @@ for the first setting and the fastest.
 from __future__ import annotations
 
 import argparse
+import re
 import statistics
 import sys
-import tempfile
 from pathlib import Path
 
 import jax
 
-from experiments.bench_render import GARDEN, bench_gsplat, bench_jax, garden_scene, load_prebuilt_gsplat
-from experiments.profiling import kernel_summary
+from experiments.bench_render import (
+    GARDEN,
+    bench_gsplat,
+    bench_jax,
+    garden_scene,
+    load_prebuilt_gsplat,
+    ratio_over_gsplat,
+)
+from experiments.profiling import traced
 from experiments.report import emit
 from kernels.composite_pallas import PallasSettings
 from kernels.raster import RasterConfig
@@ -34,23 +41,24 @@ DEFAULT_SETTINGS = "4x16,2x16,8x16,16x16,4x8,8x8,4x32,8x32,16x32,8x16e"
 TRACE_CALLS = 20
 
 
+SETTING = re.compile(r"(\d+)x(\d+)(e?)")
+
+
 def parse_setting(text: str) -> PallasSettings:
     """'WARPSxCHUNK' (an 'e' suffix: entries-major backward blocks) → the settings."""
-    entries_major = text.endswith("e")
-    warps, chunk = text.rstrip("e").split("x")
+    match = SETTING.fullmatch(text)
+    if match is None:
+        raise SystemExit(f"bench_render_backward: --settings: {text!r} (expected WARPSxCHUNK, e.g. 4x16 or 8x16e)")
+    warps, chunk, entries_major = match.groups()
     return PallasSettings(backward_num_warps=int(warps), backward_chunk=int(chunk),
-                          backward_entries_major=entries_major)
+                          backward_entries_major=bool(entries_major))
 
 
-def traced_kernels(grad_program, g, K, W) -> dict:
-    """Device time per kernel of ``TRACE_CALLS`` calls of the forward+backward program."""
-    with tempfile.TemporaryDirectory() as trace:
-        jax.block_until_ready(grad_program(g, K, W))
-        with jax.profiler.trace(trace, create_perfetto_trace=True):
-            for _ in range(TRACE_CALLS):
-                jax.block_until_ready(grad_program(g, K, W))
-        summary = kernel_summary(Path(trace), calls=TRACE_CALLS, top=15)
-    return summary
+def traced_kernels(grad_program, g, K: jax.Array, W: jax.Array) -> dict:
+    """Device time per kernel of ``TRACE_CALLS`` calls of the forward+backward program (g the
+    Gaussians, K (3, 3) and W (4, 4) one camera), after one untraced call."""
+    jax.block_until_ready(grad_program(g, K, W))
+    return traced(lambda: jax.block_until_ready(grad_program(g, K, W)), TRACE_CALLS, top=15)
 
 
 def main() -> None:
@@ -64,18 +72,23 @@ def main() -> None:
     parser.add_argument("--no-trace", action="store_true")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
+    settings = [parse_setting(name) for name in args.settings.split(",")]
+    if jax.default_backend() != "gpu":
+        raise SystemExit("bench_render_backward: the Pallas compositor's settings are timed on a GPU "
+                         f"(this JAX's backend: {jax.default_backend()})")
 
     g, Ks, viewmats, width, height = garden_scene(True, args.garden)
     if args.gsplat_extension is not None:
         load_prebuilt_gsplat(args.gsplat_extension)
     names = args.settings.split(",")
     names.append(names[0])  # the first again, last: the drift over the run
+    settings.append(settings[0])
     result = {"device": str(jax.devices()[0]), "jax": jax.__version__, "num_gaussians": g.num,
               "width": width, "height": height, "cameras": len(Ks), "repeats": args.repeats,
               "runs": []}
     programs = {}
-    for name in names:
-        config = RasterConfig(pallas=parse_setting(name))
+    for name, pallas in zip(names, settings):
+        config = RasterConfig(compositor="pallas", pallas=pallas)
         ours, (_, grad_c) = bench_jax(g, Ks, viewmats, width, height, config, args.repeats, False)
         programs[name] = grad_c
         gs = bench_gsplat(g, Ks, viewmats, width, height, args.repeats)
@@ -85,11 +98,7 @@ def main() -> None:
                "ours_forward_stages_ms": ours["forward_stages_ms"]}
         if gs.get("available"):
             run.update(gsplat_forward_ms=gs["forward_ms"], gsplat_fwd_bwd_ms=gs["fwd_bwd_ms"],
-                       ratio_ours_over_gsplat={
-                           "forward": round(statistics.median(ours["forward_ms"])
-                                            / statistics.median(gs["forward_ms"]), 3),
-                           "fwd_bwd": round(statistics.median(ours["fwd_bwd_custom_vjp_ms"])
-                                            / statistics.median(gs["fwd_bwd_ms"]), 3)})
+                       ratio_ours_over_gsplat=ratio_over_gsplat(ours, gs))
             result["gsplat"] = {k: gs[k] for k in ("version", "torch")}
         else:
             result["gsplat"] = gs

@@ -5,6 +5,8 @@ from __future__ import annotations
 import collections
 import gzip
 import json
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -41,3 +43,19 @@ def _launch_details(args: dict) -> str:
     grid, block, occupancy), as one short string ('' where it recorded none: a CPU)."""
     keys = ("kernel_details", "theoretical_occupancy_pct")
     return "; ".join(f"{k}={str(args[k])[:200]}" for k in keys if k in args)
+
+
+def traced(work: Callable[[], None], repeats: int, trace_dir: Path | None = None, top: int = 30,
+           calls_per_work: int = 1) -> dict:
+    """``kernel_summary`` per call of ``work()`` run ``repeats`` times under the profiler (each run
+    blocks until its device work is done; one run makes ``calls_per_work`` calls); the trace is
+    kept in ``trace_dir``, else in a folder removed after."""
+    import jax
+
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(trace_dir) if trace_dir is not None else Path(scratch)
+        folder.mkdir(parents=True, exist_ok=True)
+        with jax.profiler.trace(str(folder), create_perfetto_trace=True):
+            for _ in range(repeats):
+                work()
+        return kernel_summary(folder, calls=repeats * calls_per_work, top=top)
