@@ -94,6 +94,11 @@ LEVER_SETTINGS = (  # the backward's (chunk, warps, entries-major blocks); the f
     (8, 4, False), (16, 4, False), (32, 4, False), (8, 4, True), (16, 4, True), (16, 2, False), (16, 8, False))
 
 
+def _training_raster(capacity: int) -> RasterConfig:
+    """Training's raster settings (``TRAINING_RASTER``) at a tile-intersection buffer of ``capacity``."""
+    return dataclasses.replace(TRAINING_RASTER, capacity=capacity)
+
+
 def _levers(params, valid, mask, K, w2c, bg, target, offset, capacity: int, config: TrainConfig, width: int,
             height: int, g_masked) -> dict:
     """The colour render and the loss gradient per Pallas setting (``LEVER_SETTINGS``)."""
@@ -192,12 +197,12 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
             jax.lax.stop_gradient(project_gaussians(g, K, w2c, width=width, height=height)), grid, c))
         parts[name] = _ms(timed(lambda f=fn: f(g_masked), REPEATS))
     for name, capacity in (("forward", loop_capacity), ("forward_tight", tight)):
-        raster = dataclasses.replace(TRAINING_RASTER, capacity=capacity)
+        raster = _training_raster(capacity)
         fn = jax.jit(lambda g, r=raster: rasterize(g, K, w2c, width=width, height=height, background=bg,
                                                    config=r).rgb)
         parts[name] = _ms(timed(lambda f=fn: f(g_masked), REPEATS))
 
-    raster = dataclasses.replace(TRAINING_RASTER, capacity=loop_capacity)
+    raster = _training_raster(loop_capacity)
     target = splat_fit.as_float_image(image)
     offset = jnp.zeros((size, 2), jnp.float32)
     loss_grad = jax.jit(jax.value_and_grad(
@@ -245,11 +250,12 @@ def profile(scene_dir: Path, gaussians_path: Path | None, trace: Path | None, le
             "train_step_donated": (params, valid, loop_capacity, True),
             "train_step_tight": (params, valid, tight, True),
             "train_step_unpadded_tight": (exact_params, exact_valid, tight, True)}.items():
-        fn = step_fn(dataclasses.replace(TRAINING_RASTER, capacity=cap), donate)
+        at = _training_raster(cap)
+        fn = step_fn(at, donate)
         t0 = time.perf_counter()
-        per_step = run_steps(fn, jax.tree.map(jnp.copy, p), v, dataclasses.replace(TRAINING_RASTER, capacity=cap), REPEATS, sync=True)
+        per_step = run_steps(fn, jax.tree.map(jnp.copy, p), v, at, REPEATS, sync=True)
         parts[name] = {"first_and_run_s": round(time.perf_counter() - t0, 3), "ms": round(per_step * 1e3, 3)}
-    fn = step_fn(dataclasses.replace(TRAINING_RASTER, capacity=loop_capacity), True)
+    fn = step_fn(raster, True)
     result["memory"] = _memory(fn, params, valid, mask, K, w2c, image, bg, lrs, raster, config)
     for sync in (True, False):
         per_step = run_steps(fn, jax.tree.map(jnp.copy, params), valid, raster, 50, sync)

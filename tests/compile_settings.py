@@ -45,7 +45,7 @@ def compile_xla_quickly() -> None:
         probe = [sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(2).sum().block_until_ready()"]
         try:
             accepted = subprocess.run(probe, env={**os.environ, "XLA_FLAGS": with_flag, "JAX_PLATFORMS": "cpu"},
-                                      capture_output=True, timeout=TRY_SECONDS).returncode == 0
+                                      capture_output=True, timeout=TRY_SECONDS, check=False).returncode == 0
         except subprocess.TimeoutExpired:
             accepted = False
         os.environ[PROBE_RESULT_ENV] = "taken" if accepted else "refused"

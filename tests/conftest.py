@@ -9,8 +9,8 @@ from tests.compile_settings import compile_quickly, compile_xla_quickly, xla_fla
 
 compile_xla_quickly()  # before JAX starts: compile time over run time (tests/compile_settings.py)
 
-import jax  # noqa: E402
-import pytest  # noqa: E402
+import jax
+import pytest
 
 TESTS = Path(__file__).resolve().parent
 SHARED_DATA = TESTS.parents[1] / "shared" / "data"
