@@ -114,11 +114,16 @@ def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: T
         return jnp.where(right, mid + 1, lo_), jnp.where(right, hi_, mid)
 
     steps = max(1, int(cs if longest_static_run is None else min(cs, longest_static_run)).bit_length())
-    rank, _ = jax.lax.fori_loop(0, steps, bisect, (lo, hi))
+    rank, _ = jax.lax.fori_loop(0, steps, bisect, (lo, hi), unroll=True)
     rank = jnp.where(valid, rank, cs)
-    # A static entry moves back by the number of moving entries ranked at or before it.
-    inserted = jnp.zeros(cs + 1, jnp.int32).at[rank].add(valid.astype(jnp.int32))
-    static_pos = jnp.arange(cs, dtype=jnp.int32) + jnp.cumsum(inserted)[:cs]
+    # A static entry moves back by the number of moving entries ranked at or before it. The
+    # ranks never decrease along the entries (both lists are in tile order, then depth order;
+    # the entries outside the runs come last, ranked Cs), so for static entry j that number is
+    # 1 + the index of the last entry ranked ≤ j: each rank's last entry writes it at its rank
+    # (one write per rank, no atomic additions) and a running maximum carries it forward.
+    last_of_rank = valid & (rank != jnp.append(rank[1:], cs + 1))
+    ends = jnp.zeros(cs, jnp.int32).at[jnp.where(last_of_rank, rank, cs)].set(entry + 1, mode="drop")
+    static_pos = jnp.arange(cs, dtype=jnp.int32) + jax.lax.cummax(ends, axis=0)
     moving_pos = jnp.where(valid, entry + rank, cs + entry)
     ids = jnp.zeros(cs + cm, jnp.int32).at[static_pos].set(static.gaussian_ids)
     ids = ids.at[moving_pos].set(moving.gaussian_ids + offset)
@@ -226,7 +231,8 @@ def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_p
     tx = grid.tiles_x
     shift = jnp.stack([(compact % tx - image_tile % tx) * ts, (compact // tx - image_tile // tx) * ts],
                       axis=1).astype(rows.dtype)
-    return rows.at[:, :2].add(shift)
+    # built whole in one pass (an update of the centre columns in place copied every row again)
+    return jnp.concatenate([rows[:, :2] + shift, rows[:, 2:]], axis=1)
 
 
 def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_camera, *, width: int,
