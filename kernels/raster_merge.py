@@ -114,7 +114,8 @@ def merge_tile_lists(grid: TileGrid, static: TileLists, static_depths, moving: T
         return jnp.where(right, mid + 1, lo_), jnp.where(right, hi_, mid)
 
     steps = max(1, int(cs if longest_static_run is None else min(cs, longest_static_run)).bit_length())
-    rank, _ = jax.lax.fori_loop(0, steps, bisect, (lo, hi), unroll=True)
+    # bounded, its steps unrolled into one kernel (on a GPU a loop launches one kernel a step)
+    rank, _ = jax.lax.fori_loop(0, steps, bisect, (lo, hi), unroll=longest_static_run is not None)
     rank = jnp.where(valid, rank, cs)
     # A static entry moves back by the number of moving entries ranked at or before it. The
     # ranks never decrease along the entries (both lists are in tile order, then depth order;
