@@ -11,10 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from kernels.composite import TileGrid, TileLists
 from kernels.composite_pallas import PallasSettings
 from kernels.gaussians import Gaussians, concatenate
 from kernels.raster import RasterConfig, rasterize
-from kernels.raster_merge import rasterize_changed_tiles, rasterize_over_static, static_view
+from kernels.raster_merge import merge_tile_lists, rasterize_changed_tiles, rasterize_over_static, static_view
 from tests.kernels.test_composite_pallas import behind
 from tests.kernels.test_raster import camera, random_scene
 
@@ -44,6 +45,49 @@ def split(g: Gaussians, feats):
     static = jax.tree.map(lambda x: x[:NUM_STATIC], g)
     moving = jax.tree.map(lambda x: x[NUM_STATIC:], g)
     return static, moving, feats[:NUM_STATIC], feats[NUM_STATIC:]
+
+
+def _random_lists(rng, num_tiles: int, most: int, spare: int, ids, depths_from):
+    """Tile lists of up to ``most`` entries a tile (some empty), depth-sorted within each tile,
+    with ``spare`` slots after the runs: (lists, entry depths (+inf in the spare slots), per-tile
+    (depth, id) runs)."""
+    counts = rng.integers(0, most + 1, num_tiles)
+    counts[1] = 0
+    runs = [sorted(zip(rng.choice(depths_from, n), rng.choice(ids, n, replace=False)), key=lambda e: e[0])
+            for n in counts]
+    flat = [e for run in runs for e in run]
+    depths = np.array([d for d, _ in flat] + [np.inf] * spare, np.float32)
+    gaussian_ids = np.array([i for _, i in flat] + [0] * spare, np.int32)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
+    return TileLists(jnp.asarray(gaussian_ids), jnp.asarray(starts), jnp.asarray(counts, np.int32)), depths, runs
+
+
+@pytest.mark.parametrize("bounded", [False, True], ids=["bisect_the_capacity", "bisect_the_longest_run"])
+def test_merging_lists_is_a_stable_sort_of_each_tile(bounded):
+    """``merge_tile_lists`` against a sort per tile: each tile's static and moving entries by
+    depth, static before moving where depths are equal (drawn from a few values: many ties), each
+    set in its own order; tiles with no entry of either set; spare slots after both lists."""
+    rng = np.random.default_rng(3)
+    grid = TileGrid(64, 48)  # 4 × 3 tiles
+    offset = 100
+    depth_values = np.array([0.5, 1.0, 1.25, 2.0, 3.0], np.float32)
+    static, static_depths, static_runs = _random_lists(rng, grid.num_tiles, 9, 5, np.arange(offset), depth_values)
+    moving, moving_depths, moving_runs = _random_lists(rng, grid.num_tiles, 4, 3, np.arange(40), depth_values)
+    longest = int(static.tile_count.max()) if bounded else None
+    merged = jax.jit(merge_tile_lists, static_argnums=(0, 5, 6))(
+        grid, static, jnp.asarray(static_depths), moving, jnp.asarray(moving_depths), offset, longest)
+    expected = []
+    for s_run, m_run in zip(static_runs, moving_runs):
+        entries = [(d, 0, k, i) for k, (d, i) in enumerate(s_run)] + [(d, 1, k, i + offset)
+                                                                     for k, (d, i) in enumerate(m_run)]
+        expected += [i for *_, i in sorted(entries)]
+    total = len(expected)
+    assert merged.gaussian_ids.shape == (static_depths.size + moving_depths.size,)
+    np.testing.assert_array_equal(merged.gaussian_ids[:total], expected)
+    np.testing.assert_array_equal(merged.tile_count, static.tile_count + moving.tile_count)
+    np.testing.assert_array_equal(merged.tile_start, static.tile_start + moving.tile_start)
+    ties = sum(len({d for d, _ in s} & {d for d, _ in m}) for s, m in zip(static_runs, moving_runs))
+    assert ties > 0 and int(jnp.sum((static.tile_count == 0) & (moving.tile_count == 0))) >= 1
 
 
 def test_merged_lists_render_the_concatenation():
