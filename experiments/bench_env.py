@@ -2,12 +2,13 @@
 
 Single environment (MuJoCo C + the JAX renderer) and batched worlds (MJX + the batched
 renderer: the background binned and composited once per camera, each world's body-attached
-Gaussians merged into the tiles they reach, which alone are composited again), each against looping the single environment over the same worlds and cameras,
-measured in the same run. Compile times are reported apart from run times (first call vs.
-the median of later calls). Each batched run also renders world 0's state with the single
-environment (the same body poses) and reports the largest pixel difference from the batched
-image. ``--whole-images`` also times, in the same run, the batched render that merges and
-composites every tile of every image (the reference the changed-tile render replaces).
+Gaussians merged into the tiles they reach, which alone are composited again), each against
+looping the single environment over the same worlds and cameras, measured in the same run.
+Compile times are reported apart from run times (first call vs. the median of later calls). Each
+batched run also renders world 0's state with the single environment (the same body poses) and
+reports the largest pixel difference from the batched image. ``--whole-images`` also times, in
+the same run, the batched render that merges and composites every tile of every image (the
+reference the changed-tile render replaces).
 
     python -m experiments.bench_env OUT_DIR [--worlds 1 8 32] [--cameras 4]
 
@@ -49,7 +50,7 @@ def bench_single(env: Environment, cameras: list[int], steps: int, repeats: int)
 def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int, repeats: int,
                   collision: str, max_images: int, loop: bool = True, trace: Path | None = None,
                   pixels_only: bool = False, whole_images: bool = False,
-                  compositor_settings: tuple[tuple[int, int], ...] = ()) -> dict:
+                  compositor_settings: tuple[tuple[int, int, bool], ...] = ()) -> dict:
     t0 = time.perf_counter()
     batch = BatchedEnvironment(env, worlds, collision=collision)
     put_s = time.perf_counter() - t0
@@ -81,14 +82,15 @@ def bench_batched(env: Environment, worlds: int, cameras: list[int], steps: int,
     result["max_abs_rgb_diff_world0_vs_single_uint8"] = round(float(np.max(np.abs(world0 - single))), 4)
     renderer = batch._renderer
     result["changed_tiles"] = {"capacities": dataclasses.asdict(renderer.capacities), "retries": renderer.retries}
-    for chunk, warps in compositor_settings:  # the changed-tile render with other Pallas settings
-        config = RasterConfig(pallas=PallasSettings(chunk=chunk, num_warps=warps))
+    for chunk, warps, prefetch in compositor_settings:  # the changed-tile render with other Pallas settings
+        config = RasterConfig(pallas=PallasSettings(chunk=chunk, num_warps=warps, prefetch=prefetch))
         other = WorldRenderer(env, config=config, devices=batch.mesh.devices)
         placements = batch.placements()
         other_first, other_s = timed(lambda: other.render(placements, cameras, max_images=max_images,
                                                           pixels="uint8"), repeats)
         result.setdefault("compositor_settings", []).append(
-            {"chunk": chunk, "num_warps": warps, "uint8_frames_per_s": round(frames / other_s, 2),
+            {"chunk": chunk, "num_warps": warps, "prefetch": prefetch,
+             "uint8_frames_per_s": round(frames / other_s, 2),
              "compile_s": round(other_first - other_s, 2), "speedup_over_default": round(pixels_s / other_s, 3)})
     if whole_images:  # the reference: every tile of every image merged and composited, same run
         whole = WorldRenderer(env, devices=batch.mesh.devices, whole_images=True)
@@ -131,6 +133,14 @@ def _loop_baseline(env: Environment, worlds: int, cameras: list[int], steps: int
             "speedup_frames_vs_loop": round(loop_render_s / render_s, 2)}
 
 
+def compositor_setting(text: str) -> tuple[int, int, bool]:
+    """``CHUNK:WARPS`` or ``CHUNK:WARPS:prefetch`` → (chunk, warps, prefetch)."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3) or not all(p.isdigit() for p in parts[:2]) or parts[2:] not in ([], ["prefetch"]):
+        raise argparse.ArgumentTypeError(f"{text!r} (expected CHUNK:WARPS or CHUNK:WARPS:prefetch, e.g. 8:4:prefetch)")
+    return int(parts[0]), int(parts[1]), len(parts) == 3
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out_dir", type=Path)
@@ -150,7 +160,8 @@ def main() -> None:
                         help="time only the uint8 frames a policy reads, not the float32 RasterOutput as well")
     parser.add_argument("--whole-images", action="store_true",
                         help="also time the uint8 render that merges and composites every tile (the reference)")
-    parser.add_argument("--compositor-settings", nargs="*", default=[], metavar="CHUNK:WARPS",
+    parser.add_argument("--compositor-settings", nargs="*", default=[], type=compositor_setting,
+                        metavar="CHUNK:WARPS[:prefetch]",
                         help="also time the uint8 render with these Pallas compositor settings")
     parser.add_argument("--no-loop", action="store_true",
                         help="skip the single-environment loop baseline (minutes at thousands of frames)")
@@ -175,8 +186,7 @@ def main() -> None:
                                                args.collision, args.max_images, loop=not args.no_loop,
                                                trace=args.trace if worlds == max(args.worlds) else None,
                                                pixels_only=args.pixels_only, whole_images=args.whole_images,
-                                               compositor_settings=tuple(tuple(int(v) for v in c.split(":"))
-                                                                         for c in args.compositor_settings)))
+                                               compositor_settings=tuple(args.compositor_settings)))
         print(json.dumps(result["batched"][-1]), file=sys.stderr, flush=True)
     emit(result, args.out)
 
