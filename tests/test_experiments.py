@@ -30,8 +30,8 @@ def test_real_eval_moves_held_out_cameras_into_the_world_frame():
 
     from experiments.real_eval import capture_to_world, held_out_split
     from phirie_jax.frame.resolve import world_camera
-    from phirie_jax.manifest import Manifest
     from phirie_jax.geometry import rotation_to_z
+    from phirie_jax.manifest import Manifest
     from phirie_jax.types import Camera
 
     rng = np.random.default_rng(0)
@@ -225,3 +225,15 @@ def test_compile_determinism_counts_the_worlds_two_runs_agree_on(tmp_path):
     np.save(tmp_path / "c.npy", first[:4])
     with pytest.raises(SystemExit, match="shape"):
         compare(tmp_path / "a.npy", tmp_path / "c.npy")
+
+
+def test_bench_env_reads_compositor_settings_and_refuses_others():
+    import argparse
+
+    from experiments.bench_env import compositor_setting
+
+    assert compositor_setting("8:4") == (8, 4, False)
+    assert compositor_setting("16:2:prefetch") == (16, 2, True)
+    for bad in ("8", "8:x", "8:4:ahead", "8:4:prefetch:1", "-8:4"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected CHUNK:WARPS or CHUNK:WARPS:prefetch"):
+            compositor_setting(bad)
