@@ -33,6 +33,11 @@ from jax.experimental.pallas import triton as plgpu
 from kernels.composite import ALPHA_MAX, NUM_GEOMETRY, T_MIN, TileGrid, TileLists
 from kernels.project import ALPHA_MIN
 
+# Powers and logarithms are taken in base 2: an NVIDIA GPU computes 2^x and log2 x with one
+# special-function instruction each (ex2.approx, lg2.approx: relative error about 2⁻²²),
+# where e^x and log x are library routines of many instructions.
+LOG2_E = 1.4426950408889634
+
 
 @dataclasses.dataclass(frozen=True)
 class PallasSettings:
@@ -183,6 +188,15 @@ class _Block:
         return jnp.cumsum(x, axis=self.entry_axis)
 
 
+def _log2(x, interpret: bool):
+    """log2 of a block x > 0: PTX's lg2.approx on the GPU (JAX has no log2 primitive, and
+    ``jnp.log2`` divides a library log), ``jnp.log2`` when interpreted."""
+    if interpret:
+        return jnp.log2(x)
+    return plgpu.elementwise_inline_asm("lg2.approx.f32 $0, $1;", args=[x], constraints="=r,r", pack=1,
+                                        result_shape_dtypes=[jax.ShapeDtypeStruct(x.shape, x.dtype)])[0]
+
+
 def _chunk_alpha(block: _Block, px, py, columns: list, valid):
     """α of B entries at P pixels: px (P,), py (P,), columns: D arrays (B,), valid (B,) →
     alpha (0 where skipped), raw o·G, dx, dy, each a block (``_Block``)."""
@@ -190,18 +204,22 @@ def _chunk_alpha(block: _Block, px, py, columns: list, valid):
     mx, my, a, b, c, opacity = columns[:NUM_GEOMETRY]
     dx = pix(px) - ent(mx)
     dy = pix(py) - ent(my)
-    sigma = -0.5 * (ent(a) * dx * dx + ent(c) * dy * dy) - ent(b) * dx * dy
-    raw = ent(opacity) * jnp.exp(sigma)
+    # σ·log2(e), its per-entry factors scaled before the block: e^σ = 2^(σ·log2 e)
+    half_a, half_c, scaled_b = (-0.5 * LOG2_E) * a, (-0.5 * LOG2_E) * c, -LOG2_E * b
+    sigma2 = ent(half_a) * dx * dx + ent(half_c) * dy * dy + ent(scaled_b) * dx * dy
+    raw = ent(opacity) * jnp.exp2(sigma2)
     alpha = jnp.minimum(raw, ALPHA_MAX)
     alpha = jnp.where(ent(valid) & (alpha >= ALPHA_MIN), alpha, 0.0)
     return alpha, raw, dx, dy
 
 
-def _forward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, count_ref, ids_ref,
-                    params_ref, acc_ref, trans_ref, last_ref):
+def _forward_kernel(grid: TileGrid, settings: PallasSettings, with_last: bool, start_ref, count_ref,
+                    ids_ref, params_ref, acc_ref, trans_ref, walked_ref, last_ref=None):
     """One tile, front to back.  start_ref (NT,) int32; count_ref (NT,) int32; ids_ref (C,) int32;
-    params_ref (N, D); out: acc_ref (NT, CH, P), trans_ref (NT, P), last_ref (NT, P) int32
-    (1 + list position of each pixel's last contributor, 0 if none)."""
+    params_ref (N, D); out: acc_ref (NT, CH, P), trans_ref (NT, P), walked_ref (NT,) int32
+    (chunks walked) and, when ``with_last``, last_ref (NT, P) int32 (1 + list position of each
+    pixel's last contributor, 0 if none: what the backward needs, left out of a render that is
+    not differentiated)."""
     tile = pl.program_id(0)
     chunk, block = settings.chunk, _Block(settings.forward_entries_major)
     pix, ent = block.pix, block.ent
@@ -223,9 +241,9 @@ def _forward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, count_r
         (pos, valid, _, columns), loads = chunks.take(i, loads)
         alpha, _, _, _ = _chunk_alpha(block, px, py, columns, valid)
         keep = 1.0 - alpha                                # ≥ 0.01
-        log_keep = jnp.log(keep)                          # log of at most 1 − 1/255: log1p's accuracy not needed
+        log_keep = _log2(keep, settings.interpret)        # of at most 1 − 1/255: log1p's accuracy not needed
         running = block.running(log_keep)
-        excl = pix(trans) * jnp.exp(running - log_keep)   # T before each entry, no stop
+        excl = pix(trans) * jnp.exp2(running - log_keep)  # T before each entry, no stop
         incl = excl * keep                                # ... and after it (one exp a pair, not two)
         # T only decreases: once an entry fails the floor every later one does too, so
         # ``active`` is exactly what the sequential 3DGS loop would add.
@@ -233,18 +251,23 @@ def _forward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, count_r
         weights = jnp.where(active, alpha * excl, 0.0)
         acc = tuple(a + block.over_entries(jnp.sum, weights * ent(f))
                     for a, f in zip(acc, columns[NUM_GEOMETRY:]))
-        done = done | (trans * jnp.exp(block.over_entries(jnp.sum, log_keep)) < T_MIN)
+        done = done | (trans * jnp.exp2(block.over_entries(jnp.sum, log_keep)) < T_MIN)
         trans = block.over_entries(jnp.min, jnp.where(active, incl, pix(trans)))
-        last = jnp.maximum(last, block.over_entries(jnp.max, jnp.where(active, ent(pos) + 1, 0)))
+        if with_last:
+            last = jnp.maximum(last, block.over_entries(jnp.max, jnp.where(active, ent(pos) + 1, 0)))
         return i + 1, trans, done, last, acc, loads
 
-    carry = (jnp.int32(0), jnp.ones((npix,), dtype), ~inside, jnp.zeros((npix,), jnp.int32),
+    # without ``with_last`` the carried ``last`` is a placeholder scalar that is never updated
+    last0 = jnp.zeros((npix,), jnp.int32) if with_last else jnp.int32(0)
+    carry = (jnp.int32(0), jnp.ones((npix,), dtype), ~inside, last0,
              tuple(jnp.zeros((npix,), dtype) for _ in range(channels)), chunks.initial())
-    _, trans, _, last, acc, _ = jax.lax.while_loop(cond, body, carry)
+    walked, trans, _, last, acc, _ = jax.lax.while_loop(cond, body, carry)
     for k in range(channels):
         acc_ref[tile, k, :] = acc[k]
     trans_ref[tile, :] = trans
-    last_ref[tile, :] = last
+    walked_ref[tile] = walked
+    if with_last:
+        last_ref[tile, :] = last
 
 
 def _backward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, ids_ref, params_ref,
@@ -277,11 +300,11 @@ def _backward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, ids_re
         active = (alpha > 0.0) & (ent(pos) < pix(last))
         alpha = jnp.where(active, alpha, 0.0)
         keep = 1.0 - alpha
-        log_keep = jnp.log(keep)
+        log_keep = _log2(keep, settings.interpret)
         running = block.running(log_keep)
         # T before the chunk = T after / Π(1 − α) (3DGS's division, as one exp of a sum).
-        trans_before = trans_after * jnp.exp(-block.over_entries(jnp.sum, log_keep))
-        t_excl = pix(trans_before) * jnp.exp(running - log_keep)
+        trans_before = trans_after * jnp.exp2(-block.over_entries(jnp.sum, log_keep))
+        t_excl = pix(trans_before) * jnp.exp2(running - log_keep)
         weights = alpha * t_excl
         features = columns[NUM_GEOMETRY:]
         g_feat = pix(g_acc[0]) * ent(features[0])
@@ -322,22 +345,27 @@ def _compiler_params(settings: PallasSettings, num_warps: int):
     return None if settings.interpret else plgpu.CompilerParams(num_warps=num_warps)
 
 
-def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists):
-    """Forward pass over every tile.  params (N, D) → acc (NT, P, CH), T (NT, P),
-    last (NT, P) int32 (1 + list position of the last contributor, 0 if none)."""
+def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists,
+                             with_last: bool = True):
+    """Forward pass over every tile.  params (N, D) → acc (NT, P, CH), T (NT, P), walked (NT,)
+    int32 (chunks each tile walked) and last (NT, P) int32 (1 + list position of the last
+    contributor, 0 if none; None unless ``with_last``: only the backward needs it)."""
     nt, npix = grid.num_tiles, grid.tile_pixels
     channels = params.shape[1] - NUM_GEOMETRY
-    acc, trans, last = pl.pallas_call(
-        partial(_forward_kernel, grid, settings),
-        out_shape=(jax.ShapeDtypeStruct((nt, channels, npix), params.dtype),
-                   jax.ShapeDtypeStruct((nt, npix), params.dtype),
-                   jax.ShapeDtypeStruct((nt, npix), jnp.int32)),
+    out_shape = [jax.ShapeDtypeStruct((nt, channels, npix), params.dtype),
+                 jax.ShapeDtypeStruct((nt, npix), params.dtype),
+                 jax.ShapeDtypeStruct((nt,), jnp.int32)]
+    if with_last:
+        out_shape.append(jax.ShapeDtypeStruct((nt, npix), jnp.int32))
+    acc, trans, walked, *last = pl.pallas_call(
+        partial(_forward_kernel, grid, settings, with_last),
+        out_shape=tuple(out_shape),
         grid=(nt,),
         interpret=settings.interpret,
         compiler_params=_compiler_params(settings, settings.num_warps),
         name="composite_forward",
     )(lists.tile_start, lists.tile_count, lists.gaussian_ids, params)
-    return jnp.swapaxes(acc, 1, 2), trans, last
+    return jnp.swapaxes(acc, 1, 2), trans, walked, (last[0] if with_last else None)
 
 
 def composite_pallas_backward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists,
@@ -359,29 +387,25 @@ def composite_pallas_backward(grid: TileGrid, settings: PallasSettings, params, 
     return grads[:n]
 
 
-def _steps(chunk: int, last):
-    """Chunks walked by the longest-running tile: last (NT, P) int32 → () int32."""
-    return (jnp.max(last) + chunk - 1) // chunk
-
-
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
 def composite_pallas(grid: TileGrid, settings: PallasSettings, params, gaussian_ids, tile_start,
                      tile_count):
     """acc (NT, P, CH), final transmittance T (NT, P) and chunk steps () int32 of the longest
     tile, with a custom recompute-based VJP (``kernels.composite.composite``'s contract).
     params (N, D) is differentiable; gaussian_ids (C,), tile_start (NT,), tile_count (NT,)
-    int32 are bookkeeping."""
-    acc, trans, last = composite_pallas_forward(grid, settings, params,
-                                                TileLists(gaussian_ids, tile_start, tile_count))
-    return acc, trans, _steps(settings.chunk, last)
+    int32 are bookkeeping. Rendered without differentiating, no tile tracks its pixels' last
+    contributors (the backward's residual)."""
+    acc, trans, walked, _ = composite_pallas_forward(
+        grid, settings, params, TileLists(gaussian_ids, tile_start, tile_count), with_last=False)
+    return acc, trans, jnp.max(walked)
 
 
 def _composite_pallas_fwd(grid: TileGrid, settings: PallasSettings, params, gaussian_ids,
                           tile_start, tile_count):
     """Forward and residuals; params (N, D), gaussian_ids (C,), tile_start (NT,), tile_count (NT,)."""
     lists = TileLists(gaussian_ids, tile_start, tile_count)
-    acc, trans, last = composite_pallas_forward(grid, settings, params, lists)
-    return (acc, trans, _steps(settings.chunk, last)), (params, lists, trans, last)
+    acc, trans, walked, last = composite_pallas_forward(grid, settings, params, lists)
+    return (acc, trans, jnp.max(walked)), (params, lists, trans, last)
 
 
 def _composite_pallas_bwd(grid: TileGrid, settings: PallasSettings, residuals: tuple,

@@ -15,9 +15,10 @@ import pytest
 from jax import export
 
 from kernels.composite import TileGrid
-from kernels.composite_pallas import PallasSettings, composite_pallas
+from kernels.composite_pallas import PallasSettings, composite_pallas, composite_pallas_forward
 from kernels.gaussians import Gaussians
-from kernels.raster import RasterConfig, rasterize
+from kernels.project import project_gaussians
+from kernels.raster import RasterConfig, bin_gaussians, composite_params, rasterize
 from tests.kernels.test_raster import camera, random_scene
 
 IMAGE_ATOL = 1e-6   # same float32 sums in another order (cumulative sum vs triangle product)
@@ -121,6 +122,38 @@ def test_lists_cut_by_the_capacity_composite_alike():
                                    err_msg=f"read ahead {key}")
 
 
+def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_chunks():
+    """Rendered without differentiating, the forward tracks no last contributor (the backward's
+    residual) and composites the same pixels; each tile's walked chunks cover its last
+    contributor and never pass its list's end (both with and without reading ahead)."""
+    K, w2c = camera(WIDTH, HEIGHT)
+    g, feats = random_scene(seed=5, n=120)
+    # larger and more opaque: every tile's pixels saturate before its list ends
+    g = g.replace(opacity_logits=jnp.full_like(g.opacity_logits, 3.0), log_scales=g.log_scales + 2.0)
+    grid = TileGrid(WIDTH, HEIGHT)
+    proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
+    params = composite_params(proj, feats)
+    lists, _ = bin_gaussians(proj, grid, 1 << 11)
+    count = np.asarray(lists.tile_count)
+    for prefetch in (False, True):
+        settings = dataclasses.replace(PALLAS.pallas, prefetch=prefetch)
+        acc, trans, walked, last = composite_pallas_forward(grid, settings, params, lists)
+        acc_only, trans_only, walked_only, none = composite_pallas_forward(grid, settings, params, lists,
+                                                                           with_last=False)
+        assert none is None
+        np.testing.assert_array_equal(acc_only, acc)
+        np.testing.assert_array_equal(trans_only, trans)
+        np.testing.assert_array_equal(walked_only, walked)
+        walked = np.asarray(walked)
+        assert np.all(walked * CHUNK >= np.asarray(last).max(axis=1))   # each tile reached its last contributor
+        assert np.all(walked <= -(-count // CHUNK))                      # and stopped at its list's end
+        assert np.all(walked < -(-count // CHUNK)) and np.all(walked > 1)  # saturated after a few chunks
+        # the custom-VJP primal (no gradient) reports the longest tile's walk
+        _, _, steps = composite_pallas(grid, settings, params, lists.gaussian_ids, lists.tile_start,
+                                       lists.tile_count)
+        assert int(steps) == walked.max()
+
+
 @pytest.mark.parametrize("field", ["chunk", "backward_chunk", "num_warps", "backward_num_warps"])
 @pytest.mark.parametrize("value", [0, 3, 6])
 def test_settings_want_powers_of_two(field, value):
@@ -152,3 +185,8 @@ def test_kernels_lower_to_triton(entries_major):
     module = exported.mlir_module()
     assert re.findall(r'name = "composite_forward"[^}]*num_warps = (\d+)', module) == ["4"]
     assert re.findall(r'name = "composite_backward"[^}]*num_warps = (\d+)', module) == ["2"]
+    # and the forward of a render that is not differentiated (no last contributors)
+    forward_only = export.export(jax.jit(lambda *a: composite_pallas(grid, settings, *a)), platforms=["cuda"],
+                                 disabled_checks=[export.DisabledSafetyCheck.custom_call(
+                                     "__gpu$xla.gpu.triton")])(*args)
+    assert re.findall(r'name = "composite_forward"[^}]*num_warps = (\d+)', forward_only.mlir_module()) == ["4"]
