@@ -4,9 +4,10 @@ Same inputs, rules and outputs as ``kernels.composite.composite``: parameter row
 [μx, μy, a, b, c, opacity, features...] and depth-sorted tile lists (``TileLists``). One
 program per tile, its P = T×T pixels one block: the tile's list is walked in chunks of B
 entries, each composited as a (B, P) or (P, B) block (``PallasSettings``) whose running
-transmittances come from a cumulative sum of log(1 − α) along the chunk (one scan, no
-per-entry loop), until every
-pixel is saturated or the list ends. A GPU runs the tiles as independent programs, so each
+transmittances come from a cumulative sum of log₂(1 − α) along the chunk (one scan, no
+per-entry loop; base 2 because a GPU takes 2^x and log₂ x in one instruction each), until
+every pixel is saturated or the list ends. A render that is not differentiated tracks no
+pixel's last contributor (only the backward needs it). A GPU runs the tiles as independent programs, so each
 stops after its own work and no work queue is needed (``kernels.composite`` needs one to
 get the same early exit inside one XLA loop).
 
