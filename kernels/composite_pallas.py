@@ -190,8 +190,8 @@ class _Block:
 
 
 def _log2(x, interpret: bool):
-    """log2 of a block x > 0: PTX's lg2.approx on the GPU (JAX has no log2 primitive, and
-    ``jnp.log2`` divides a library log), ``jnp.log2`` when interpreted."""
+    """log2 of x (B, P) or (P, B) > 0, a block: PTX's lg2.approx on the GPU (JAX has no log2
+    primitive, and ``jnp.log2`` divides a library log), ``jnp.log2`` when interpreted."""
     if interpret:
         return jnp.log2(x)
     return plgpu.elementwise_inline_asm("lg2.approx.f32 $0, $1;", args=[x], constraints="=r,r", pack=1,
