@@ -7,9 +7,9 @@ entries, each composited as a (B, P) or (P, B) block (``PallasSettings``) whose 
 transmittances come from a cumulative sum of log₂(1 − α) along the chunk (one scan, no
 per-entry loop; base 2 because a GPU takes 2^x and log₂ x in one instruction each), until
 every pixel is saturated or the list ends. A render that is not differentiated tracks no
-pixel's last contributor (only the backward needs it). A GPU runs the tiles as independent programs, so each
-stops after its own work and no work queue is needed (``kernels.composite`` needs one to
-get the same early exit inside one XLA loop).
+pixel's last contributor (only the backward needs it). A GPU runs the tiles as independent
+programs, so each stops after its own work and no work queue is needed
+(``kernels.composite`` needs one to get the same early exit inside one XLA loop).
 
 The custom VJP walks each tile back to front from its last contributor, recovering Tᵢ by
 division as 3DGS does (safe: α ≤ 0.99 and T ≥ 1e-4), reduces each entry's gradient over the
@@ -35,8 +35,9 @@ from kernels.composite import ALPHA_MAX, NUM_GEOMETRY, T_MIN, TileGrid, TileList
 from kernels.project import ALPHA_MIN
 
 # Powers and logarithms are taken in base 2: an NVIDIA GPU computes 2^x and log2 x with one
-# special-function instruction each (ex2.approx, lg2.approx: relative error about 2⁻²²),
-# where e^x and log x are library routines of many instructions.
+# special-function instruction each (ex2.approx: relative error about 2⁻²²; lg2.approx:
+# absolute error about 2⁻²² near 1), where e^x and log x are library routines of many
+# instructions.
 LOG2_E = 1.4426950408889634
 
 

@@ -131,15 +131,19 @@ def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_
     # larger and more opaque: every tile's pixels saturate before its list ends
     g = g.replace(opacity_logits=jnp.full_like(g.opacity_logits, 3.0), log_scales=g.log_scales + 2.0)
     grid = TileGrid(WIDTH, HEIGHT)
-    proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
-    params = composite_params(proj, feats)
-    lists, _ = bin_gaussians(proj, grid, 1 << 11)
+
+    @jax.jit
+    def rows_and_lists(g, feats):
+        proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
+        return composite_params(proj, feats), bin_gaussians(proj, grid, 1 << 11)[0]
+
+    params, lists = rows_and_lists(g, feats)
     count = np.asarray(lists.tile_count)
+    forward = jax.jit(composite_pallas_forward, static_argnums=(0, 1), static_argnames=("with_last",))
     for prefetch in (False, True):
         settings = dataclasses.replace(PALLAS.pallas, prefetch=prefetch)
-        acc, trans, walked, last = composite_pallas_forward(grid, settings, params, lists)
-        acc_only, trans_only, walked_only, none = composite_pallas_forward(grid, settings, params, lists,
-                                                                           with_last=False)
+        acc, trans, walked, last = forward(grid, settings, params, lists)
+        acc_only, trans_only, walked_only, none = forward(grid, settings, params, lists, with_last=False)
         assert none is None
         np.testing.assert_array_equal(acc_only, acc)
         np.testing.assert_array_equal(trans_only, trans)
@@ -149,8 +153,8 @@ def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_
         assert np.all(walked <= -(-count // CHUNK))                      # and stopped at its list's end
         assert np.all(walked < -(-count // CHUNK)) and np.all(walked > 1)  # saturated after a few chunks
         # the custom-VJP primal (no gradient) reports the longest tile's walk
-        _, _, steps = composite_pallas(grid, settings, params, lists.gaussian_ids, lists.tile_start,
-                                       lists.tile_count)
+        _, _, steps = jax.jit(composite_pallas, static_argnums=(0, 1))(grid, settings, params, lists.gaussian_ids,
+                                                                       lists.tile_start, lists.tile_count)
         assert int(steps) == walked.max()
 
 

@@ -75,7 +75,7 @@ def scene():
         opacity_logits=jnp.full((size,), 2.0, jnp.float32), raw_offsets=jnp.zeros((size, 2), jnp.float32),
         log_scales=jnp.full((size, 2), np.log(0.9 * GRID), jnp.float32))
     K, w2c = camera()
-    kept = rasterize(slab, K, w2c, width=C, height=C, background=BACKGROUND, config=CONFIG)
+    kept = render(slab, K, w2c, width=C, height=C, background=BACKGROUND, config=CONFIG)
     uv = (np.asarray(K) @ (np.asarray(w2c)[:3, :3] @ np.array([[-HOLE, -HOLE, 0], [HOLE, HOLE, 0]]).T
                             + np.asarray(w2c)[:3, 3:])).T
     uv = uv[:, :2] / uv[:, 2:]

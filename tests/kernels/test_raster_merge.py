@@ -237,10 +237,12 @@ def test_changed_tiles_keep_the_image_precision_when_every_tile_changes():
     take = lambda x, part: x[part::2]  # noqa: E731
     static, moving = jax.tree.map(lambda x: take(x, 0), g), jax.tree.map(lambda x: take(x, 1), g)
     config = RasterConfig(capacity=1 << 16, chunk=16, slots=8)
-    view = static_view(static, K, w2c, width=width, height=height, features=take(feats, 0), config=config)
-    kwargs = dict(width=width, height=height, moving_capacity=1 << 15, features=take(feats, 1), config=config)
-    got, use = rasterize_changed_tiles(view, moving, K, w2c, tile_capacity=160, entry_capacity=1 << 16, **kwargs)
-    ref = rasterize_over_static(view, moving, K, w2c, **kwargs)
+    view = jax.jit(lambda g, f: static_view(g, K, w2c, width=width, height=height, features=f, config=config))(
+        static, take(feats, 0))
+    kwargs = dict(width=width, height=height, moving_capacity=1 << 15, config=config)
+    got, use = jax.jit(lambda v, g, f: rasterize_changed_tiles(v, g, K, w2c, tile_capacity=160, entry_capacity=1 << 16,
+                                                               features=f, **kwargs))(view, moving, take(feats, 1))
+    ref = jax.jit(lambda v, g, f: rasterize_over_static(v, g, K, w2c, features=f, **kwargs))(view, moving, take(feats, 1))
     assert int(use.tiles) > 130 and not bool(got.overflow) and not bool(ref.overflow)
     np.testing.assert_allclose(got.rgb, ref.rgb, atol=1e-6)
 

@@ -33,7 +33,7 @@ WAIT_S = 60.0            # for the page to connect, draw and answer (software We
 BLANK_STD = 5.0          # 8-bit levels: a drawn scene varies more than an empty canvas
 OBJECT_CHANGE = 20.0     # mean 8-bit colour change where an object was, when it is hidden
 MOVED_M = 0.01           # a shot or dragged object moves more than this
-DRAG_PX, DRAG_STEPS = 120, 15   # the drag: pixels to the left, in pointer moves
+DRAG_PX, DRAG_STEPS = 120, 5    # the drag: pixels to the left, in pointer moves (each waits for a frame: ~1 s)
 
 
 def free_port() -> int:
@@ -140,7 +140,7 @@ def test_page_draws_the_objects_a_click_shoots_one_and_a_drag_pulls_another(view
             page.mouse.move(x, y)
             page.mouse.down()
             for step in range(1, DRAG_STEPS + 1):
-                page.mouse.move(x - DRAG_PX * step / DRAG_STEPS, y, steps=2)
+                page.mouse.move(x - DRAG_PX * step / DRAG_STEPS, y)
                 page.wait_for_timeout(50)
             until(lambda: dragged in viewer.live.grabs, "the drag to grab the object")
             page.wait_for_timeout(800)
