@@ -125,7 +125,7 @@ def test_lists_cut_by_the_capacity_composite_alike():
 def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_chunks():
     """Rendered without differentiating, the forward tracks no last contributor (the backward's
     residual) and composites the same pixels; each tile's walked chunks cover its last
-    contributor and never pass its list's end (both with and without reading ahead)."""
+    contributor and end when its pixels saturate (both with and without reading ahead)."""
     K, w2c = camera(WIDTH, HEIGHT)
     g, feats = random_scene(seed=5, n=120)
     # larger and more opaque: every tile's pixels saturate before its list ends
@@ -150,8 +150,8 @@ def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_
         np.testing.assert_array_equal(walked_only, walked)
         walked = np.asarray(walked)
         assert np.all(walked * CHUNK >= np.asarray(last).max(axis=1))   # each tile reached its last contributor
-        assert np.all(walked <= -(-count // CHUNK))                      # and stopped at its list's end
-        assert np.all(walked < -(-count // CHUNK)) and np.all(walked > 1)  # saturated after a few chunks
+        # and stopped once its pixels saturated, a few chunks in and before its list's end
+        assert np.all(walked < -(-count // CHUNK)) and np.all(walked > 1)
         # the custom-VJP primal (no gradient) reports the longest tile's walk
         _, _, steps = jax.jit(composite_pallas, static_argnums=(0, 1))(grid, settings, params, lists.gaussian_ids,
                                                                        lists.tile_start, lists.tile_count)
