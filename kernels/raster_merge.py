@@ -8,8 +8,8 @@ bins them into depth-sorted tile lists once; per world, ``rasterize_over_static`
 and bins only the moving Gaussians and merges their lists into the static ones by depth
 (per tile, a merge of two sorted lists by rank: a binary search of each moving entry in its
 tile's static run, and for each static entry the moving entries ranked before it, a running
-maximum over the last entry of each rank), then composites the
-merged lists with the usual compositor. The result is the image ``kernels.raster.rasterize``
+maximum over the last entry of each rank), then composites the merged lists with the usual
+compositor. The result is the image ``kernels.raster.rasterize``
 gives for the concatenation [static, moving]: one depth order per pixel, ties broken as its
 stable sort breaks them (static first, then by index).
 
