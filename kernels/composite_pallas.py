@@ -4,8 +4,8 @@ Same inputs, rules and outputs as ``kernels.composite.composite``: parameter row
 [μx, μy, a, b, c, opacity, features...] and depth-sorted tile lists (``TileLists``). One
 program per tile, its P = T×T pixels one block: the tile's list is walked in chunks of B
 entries, each composited as a (B, P) or (P, B) block (``PallasSettings``) whose running
-transmittances come from a cumulative sum of log₂(1 − α) along the chunk (one scan, no
-per-entry loop; base 2 because a GPU takes 2^x and log₂ x in one instruction each), until
+transmittances are the running products of (1 − α) along the chunk (one scan of
+multiplications, no per-entry loop; ``kernels.running_product``), until
 every pixel is saturated or the list ends. A render that is not differentiated tracks no
 pixel's last contributor (only the backward needs it). A GPU runs the tiles as independent
 programs, so each stops after its own work and no work queue is needed
@@ -33,11 +33,12 @@ from jax.experimental.pallas import triton as plgpu
 
 from kernels.composite import ALPHA_MAX, NUM_GEOMETRY, T_MIN, TileGrid, TileLists
 from kernels.project import ALPHA_MIN
+from kernels.running_product import running_products
 
-# Powers and logarithms are taken in base 2: an NVIDIA GPU computes 2^x and log2 x with one
-# special-function instruction each (ex2.approx: relative error about 2⁻²²; lg2.approx:
-# absolute error about 2⁻²² near 1), where e^x and log x are library routines of many
-# instructions.
+# Each entry's Gaussian is a power of 2: an NVIDIA GPU computes 2^x with one special-function
+# instruction (ex2.approx: relative error about 2⁻²²), where e^x is a library routine of many
+# instructions. The running transmittances are products (``kernels.running_product``): no
+# logarithm, no power.
 LOG2_E = 1.4426950408889634
 
 
@@ -192,14 +193,10 @@ class _Block:
         """x (B, P) or (P, B) → its inclusive cumulative sum along the entries (front to back)."""
         return jnp.cumsum(x, axis=self.entry_axis)
 
-
-def _log2(x, interpret: bool):
-    """log2 of x (B, P) or (P, B) > 0, a block: PTX's lg2.approx on the GPU (JAX has no log2
-    primitive, and ``jnp.log2`` divides a library log), ``jnp.log2`` when interpreted."""
-    if interpret:
-        return jnp.log2(x)
-    return plgpu.elementwise_inline_asm("lg2.approx.f32 $0, $1;", args=[x], constraints="=r,r", pack=1,
-                                        result_shape_dtypes=[jax.ShapeDtypeStruct(x.shape, x.dtype)])[0]
+    def running_products(self, x):
+        """x (B, P) or (P, B) → (before, upto): the products of the entries in front of each
+        entry, and up to it (``kernels.running_product``)."""
+        return running_products(x, self.entry_axis)
 
 
 def _chunk_alpha(block: _Block, px, py, columns: list, valid):
@@ -246,17 +243,16 @@ def _forward_kernel(grid: TileGrid, settings: PallasSettings, with_last: bool, s
         (pos, valid, _, columns), loads = chunks.take(i, loads)
         alpha, _, _, _ = _chunk_alpha(block, px, py, columns, valid)
         keep = 1.0 - alpha                                # ≥ 0.01
-        log_keep = _log2(keep, settings.interpret)        # of at most 1 − 1/255: log1p's accuracy not needed
-        running = block.running(log_keep)
-        excl = pix(trans) * jnp.exp2(running - log_keep)  # T before each entry, no stop
-        incl = excl * keep                                # ... and after it (one exp a pair, not two)
+        before, upto = block.running_products(keep)
+        excl = pix(trans) * before                        # T before each entry, no stop
+        incl = pix(trans) * upto                          # ... and after it
         # T only decreases: once an entry fails the floor every later one does too, so
         # ``active`` is exactly what the sequential 3DGS loop would add.
         active = pix(~done) & (alpha > 0.0) & (incl >= T_MIN)
         weights = jnp.where(active, alpha * excl, 0.0)
         acc = tuple(a + block.over_entries(jnp.sum, weights * ent(f))
                     for a, f in zip(acc, columns[NUM_GEOMETRY:]))
-        done = done | (trans * jnp.exp2(block.over_entries(jnp.sum, log_keep)) < T_MIN)
+        done = done | (trans * block.over_entries(jnp.min, upto) < T_MIN)  # Π(1 − α): the last, the least
         trans = block.over_entries(jnp.min, jnp.where(active, incl, pix(trans)))
         if with_last:
             last = jnp.maximum(last, block.over_entries(jnp.max, jnp.where(active, ent(pos) + 1, 0)))
@@ -305,11 +301,10 @@ def _backward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, ids_re
         active = (alpha > 0.0) & (ent(pos) < pix(last))
         alpha = jnp.where(active, alpha, 0.0)
         keep = 1.0 - alpha
-        log_keep = _log2(keep, settings.interpret)
-        running = block.running(log_keep)
-        # T before the chunk = T after / Π(1 − α) (3DGS's division, as one exp of a sum).
-        trans_before = trans_after * jnp.exp2(-block.over_entries(jnp.sum, log_keep))
-        t_excl = pix(trans_before) * jnp.exp2(running - log_keep)
+        before, upto = block.running_products(keep)
+        # T before the chunk = T after / Π(1 − α) (3DGS's division, once a pixel and chunk).
+        trans_before = trans_after / block.over_entries(jnp.min, upto)
+        t_excl = pix(trans_before) * before
         weights = alpha * t_excl
         features = columns[NUM_GEOMETRY:]
         g_feat = pix(g_acc[0]) * ent(features[0])
