@@ -78,8 +78,11 @@ class PallasSettings:
         11.51 vs 11.54 ms at 16).
     interpret: run the kernels in Pallas' interpreter (any backend; for tests).
 
-    The figures above were measured before the kernels' powers and logarithms moved to base 2,
-    which took the worlds' forward from 128 registers a thread to 91; they were not re-measured.
+    The figures above were measured before the kernels' running transmittances became running
+    products (``kernels.running_product``; the worlds' forward went from 128 registers a thread
+    to 80) and were not re-measured, except for the worlds' changed tiles at 640×480: there chunks
+    of 16 with read-ahead are now 2 % faster than 8 (``phirie_jax.interact.batched.WORLD_RASTER``),
+    8 warps 8–10 % slower.
     """
 
     chunk: int = 8
