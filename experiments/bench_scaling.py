@@ -6,8 +6,12 @@ Two workloads, each run on ``devices=1`` and on every device JAX sees, in this p
   ``interact.batched.BatchedEnvironment`` (the worlds spread over a 1-D mesh, ``kernels.sharding``):
   each world gets its own throw (seeded random velocities), then ``--steps`` steps per timed call
   (world-steps/s) and a render of every world from every camera per timed call (frames/s);
-- ``steps``: the worlds' MJX steps alone (no render, no comparison), for world counts whose
+- ``steps``: the worlds' steps alone (no render, no comparison), for world counts whose
   render would not fit a call's time;
+
+``--backend`` picks the worlds' simulator: "mjx" (default; one hull per object) or "warp"
+(MuJoCo Warp, the exact CoACD parts; its worlds divided over the GPUs, one Warp model per GPU,
+their poses handed to the sharded renderer on their own GPU);
 - ``droptests``: ``--candidates`` drop tests (the procedural agreement cases of
   ``bench_droptest``, one hull each, the paper's protocol) in the MJX batch program
   (``construct.physics.mjx_batch``, candidates spread over the mesh); and, with MuJoCo Warp
@@ -91,19 +95,33 @@ def throws(env, worlds: int, throw: float, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).normal(0.0, throw, (worlds, env.model.nv))
 
 
+def world_state(batch) -> dict:
+    """The worlds' final qpos and qvel (N, …), of either backend."""
+    if hasattr(batch, "worlds"):   # MuJoCo Warp: the host copy of every world, pads left out
+        return {name: batch.worlds.field(name)[: batch.num_worlds] for name in ("qpos", "qvel")}
+    return {"qpos": batch.data.qpos, "qvel": batch.data.qvel}
+
+
+def timed_world_steps(batch, steps: int, repeats: int) -> tuple[float, float]:
+    """``timed`` steps of either backend, waiting for the simulator (Warp: every GPU's stream)."""
+    if hasattr(batch, "worlds"):
+        return timed(lambda: (batch.step(steps), batch.worlds.synchronize()), repeats)
+    return timed_steps(batch, steps, repeats)
+
+
 def bench_worlds(env, worlds: int, cameras: list[int], steps: int, repeats: int, devices, thrown: np.ndarray,
-                 max_images: int) -> tuple[dict, dict]:
+                 max_images: int, backend: str = "mjx") -> tuple[dict, dict]:
     """One device count: timings, and (final state, images) for the comparison."""
     from phirie_jax.interact.batched import BatchedEnvironment
 
     t0 = time.perf_counter()
-    batch = BatchedEnvironment(env, worlds, devices=devices)
+    batch = BatchedEnvironment(env, worlds, devices=devices, backend=backend)
     batch.set_velocities(thrown)
     put_s = time.perf_counter() - t0
-    step_first, step_s = timed_steps(batch, steps, repeats)
+    step_first, step_s = timed_world_steps(batch, steps, repeats)
     render_first, render_s = timed(lambda: batch.render(cameras, max_images=max_images).rgb, repeats)
     images = batch.render(cameras, max_images=max_images)
-    state = {"qpos": batch.data.qpos, "qvel": batch.data.qvel}
+    state = world_state(batch)
     frames = worlds * len(cameras)
     row = {"devices": batch.mesh.size, "worlds_padded": batch.padded_worlds, "put_s": round(put_s, 2),
            "step_compile_s": round(step_first - step_s, 2), "step_s": round(step_s, 4),
@@ -149,12 +167,13 @@ def worlds_part(args, all_devices) -> dict:
     result = {"worlds": args.worlds, "cameras": len(cameras), "steps_per_call": args.steps,
               "image": [env.cameras[0].width, env.cameras[0].height], "objects": len(env.objects),
               "gaussians": int(env.background.num + env.object_gaussians.num),
-              "images_per_device_and_call": args.max_images,
+              "images_per_device_and_call": args.max_images, "simulator": args.backend,
               "throw": f"every velocity of every world ~ N(0, {args.throw}) (seed {args.seed})"}
     rows, kept = [], []
     for devices in (1, all_devices):
         _say(f"worlds on {len(devices) if devices != 1 else 1} device(s)")
-        row, out = bench_worlds(env, args.worlds, cameras, args.steps, args.repeats, devices, thrown, args.max_images)
+        row, out = bench_worlds(env, args.worlds, cameras, args.steps, args.repeats, devices, thrown, args.max_images,
+                                args.backend)
         rows.append(row)
         kept.append(out)
         _say(json.dumps(row))
@@ -175,14 +194,14 @@ def first_device_worlds(env, sharded: dict, args, thrown: np.ndarray, state: dic
     from phirie_jax.interact.batched import BatchedEnvironment
 
     per = sharded["worlds_padded"] // sharded["devices"]
-    batch = BatchedEnvironment(env, per, devices=1)
+    batch = BatchedEnvironment(env, per, devices=1, backend=args.backend)
     batch.set_velocities(thrown[:per])
     for _ in range(1 + args.repeats):     # the step calls of ``bench_worlds``
         batch.step(args.steps)
-    same = [np.array_equal(np.asarray(getattr(batch.data, name)), np.asarray(state[name])[:per])
-            for name in ("qpos", "qvel")]
+    alone = world_state(batch)
+    same = [np.array_equal(np.asarray(alone[name]), np.asarray(state[name])[:per]) for name in ("qpos", "qvel")]
     return {"worlds": per, "equal": bool(all(same)),
-            "max_abs_qpos_difference": _largest(batch.data.qpos, np.asarray(state["qpos"])[:per])}
+            "max_abs_qpos_difference": _largest(alone["qpos"], np.asarray(state["qpos"])[:per])}
 
 
 def steps_part(args, all_devices) -> dict:
@@ -194,13 +213,14 @@ def steps_part(args, all_devices) -> dict:
     env = Environment.load(args.scene)
     rows = []
     for devices in (1, all_devices):
-        batch = BatchedEnvironment(env, args.worlds, devices=devices)
+        batch = BatchedEnvironment(env, args.worlds, devices=devices, backend=args.backend)
         batch.set_velocities(throws(env, args.worlds, args.throw, args.seed))
-        first, step_s = timed_steps(batch, args.steps, args.repeats)
+        first, step_s = timed_world_steps(batch, args.steps, args.repeats)
         rows.append({"devices": batch.mesh.size, "step_compile_s": round(first - step_s, 2), "step_s": round(step_s, 4),
                      "world_steps_per_s": round(args.worlds * args.steps / step_s, 1)})
         _say(json.dumps(rows[-1]))
-    return {"worlds": args.worlds, "steps_per_call": args.steps, "one_device": rows[0], "all_devices": rows[1],
+    return {"worlds": args.worlds, "steps_per_call": args.steps, "simulator": args.backend,
+            "one_device": rows[0], "all_devices": rows[1],
             "speedup": round(rows[0]["step_s"] / rows[1]["step_s"], 3)}
 
 
@@ -353,7 +373,9 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--parts", nargs="+", choices=["worlds", "steps", "droptests"], default=["worlds", "droptests"])
-    parser.add_argument("--skip-warp", action="store_true", help="no MuJoCo Warp rows")
+    parser.add_argument("--backend", choices=["mjx", "warp"], default="mjx",
+                        help="the worlds' simulator (the worlds and steps parts)")
+    parser.add_argument("--skip-warp", action="store_true", help="no MuJoCo Warp drop-test rows")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
 
