@@ -16,9 +16,14 @@ private to JAX); elsewhere, and in Pallas' interpreter, it is ``jnp.cumprod`` sh
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax.numpy as jnp
 from jax.extend.core import Primitive
 from jax.interpreters import mlir
+
+if TYPE_CHECKING:
+    from jax._src.lib.mlir import ir
 
 running_products_p = Primitive("running_products")
 running_products_p.multiple_results = True
@@ -45,10 +50,10 @@ def _abstract(x, ones, *, axis: int):
     return x, x
 
 
-def _triton_lowering(ctx, x, ones, *, axis: int):
+def _triton_lowering(ctx: object, x: ir.Value, ones: ir.Value, *, axis: int) -> list:
     """One ``tt.scan`` over the operands (x, 1): (p₁, q₁)·(p₂, q₂) = (p₁p₂, p₁q₂) gives p, the
-    inclusive product, and q, the product before each element. x (..., B, ...) and
-    ones (..., B, ...) are Triton values; ctx () Pallas' lowering context (unused)."""
+    inclusive product, and q, the product before each element (Triton tensors of one shape;
+    ``ctx``, Pallas' lowering context, is not needed)."""
     from jax._src.lib.mlir import ir
     from jax._src.lib.mlir.dialects import arith
     from jax._src.lib.triton import dialect as tt
