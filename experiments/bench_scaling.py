@@ -8,15 +8,15 @@ Two workloads, each run on ``devices=1`` and on every device JAX sees, in this p
   (world-steps/s) and a render of every world from every camera per timed call (frames/s);
 - ``steps``: the worlds' steps alone (no render, no comparison), for world counts whose
   render would not fit a call's time;
-
-``--backend`` picks the worlds' simulator: "mjx" (default; one hull per object) or "warp"
-(MuJoCo Warp, the exact CoACD parts; its worlds divided over the GPUs, one Warp model per GPU,
-their poses handed to the sharded renderer on their own GPU);
 - ``droptests``: ``--candidates`` drop tests (the procedural agreement cases of
   ``bench_droptest``, one hull each, the paper's protocol) in the MJX batch program
   (``construct.physics.mjx_batch``, candidates spread over the mesh); and, with MuJoCo Warp
   installed and a GPU, ``droptests_warp``: the same candidates divided over the GPUs, one Warp
   model per GPU (``warp_batch.prepare_split``) against all of them on the first GPU.
+
+``--backend`` picks the worlds' simulator (the ``worlds`` and ``steps`` parts): "mjx" (default;
+one hull per object) or "warp" (MuJoCo Warp, the exact CoACD parts; its worlds divided over the
+GPUs, one Warp model per GPU, their poses handed to the sharded renderer on their own GPU).
 
 Compile time (``.lower().compile()``, or the first call minus a later one) is reported apart
 from run time (median of ``--repeats`` calls after it, ``block_until_ready``). Speedups are run
@@ -95,16 +95,22 @@ def throws(env, worlds: int, throw: float, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).normal(0.0, throw, (worlds, env.model.nv))
 
 
+def _is_warp(batch) -> bool:
+    from phirie_jax.interact.batched import WarpBatchedEnvironment
+
+    return isinstance(batch, WarpBatchedEnvironment)
+
+
 def world_state(batch) -> dict:
     """The worlds' final qpos and qvel (N, …), of either backend."""
-    if hasattr(batch, "worlds"):   # MuJoCo Warp: the host copy of every world, pads left out
+    if _is_warp(batch):   # MuJoCo Warp: the host copy of every world, pads left out
         return {name: batch.worlds.field(name)[: batch.num_worlds] for name in ("qpos", "qvel")}
     return {"qpos": batch.data.qpos, "qvel": batch.data.qvel}
 
 
 def timed_world_steps(batch, steps: int, repeats: int) -> tuple[float, float]:
     """``timed`` steps of either backend, waiting for the simulator (Warp: every GPU's stream)."""
-    if hasattr(batch, "worlds"):
+    if _is_warp(batch):
         return timed(lambda: (batch.step(steps), batch.worlds.synchronize()), repeats)
     return timed_steps(batch, steps, repeats)
 

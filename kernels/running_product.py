@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 from jax.extend.core import Primitive
-from jax.interpreters import mlir
+from jax.interpreters import batching, mlir
 
 if TYPE_CHECKING:
     from jax._src.lib.mlir import ir
@@ -48,6 +48,16 @@ def _abstract(x, ones, *, axis: int):
     """The outputs' shapes: x (..., B, ...) and ones (..., B, ...) as avals → two of x's."""
     del ones, axis
     return x, x
+
+
+def _batched(args: tuple, dims: tuple, *, axis: int) -> tuple:
+    """vmap: args (x, ones), each (..., B, ...) with its batch axis at ``dims`` (None: not
+    mapped) → the products of x, its batch axis first, and the outputs' batch axes."""
+    x, ones = args
+    if dims[0] is None:   # x not mapped (only the ones were): its products are every slice's
+        return running_products_p.bind(x, jnp.ones_like(x), axis=axis), (None, None)
+    x = jnp.moveaxis(x, dims[0], 0)
+    return running_products_p.bind(x, jnp.ones_like(x), axis=axis + 1), (0, 0)
 
 
 def _triton_lowering(ctx: object, x: ir.Value, ones: ir.Value, *, axis: int) -> list:
@@ -86,5 +96,6 @@ def _register_triton_lowering() -> bool:
 
 running_products_p.def_impl(_reference)
 running_products_p.def_abstract_eval(_abstract)
+batching.primitive_batchers[running_products_p] = _batched
 mlir.register_lowering(running_products_p, mlir.lower_fun(_reference, multiple_results=True))
 LOWERS_TO_TRITON = _register_triton_lowering()

@@ -36,6 +36,16 @@ def test_products_match_a_loop(axis):
     np.testing.assert_allclose(upto, want_upto, rtol=1e-5)
 
 
+def test_products_under_vmap_are_each_rows_products():
+    """Mapped over a leading axis, each slice's products are its own (the primitive's batching)."""
+    x = np.random.default_rng(3).uniform(0.01, 1.0, (3, 8, 16)).astype(np.float32)
+    before, upto = jax.vmap(lambda a: running_products(a, 0))(x)
+    for k in range(3):
+        want_before, want_upto = _loop_products(x[k], 0)
+        np.testing.assert_allclose(before[k], want_before, rtol=1e-5)
+        np.testing.assert_allclose(upto[k], want_upto, rtol=1e-5)
+
+
 def test_products_properties():
     """The first element is preceded by nothing (1); upto = before · x; the products never grow
     for factors in [0, 1]; a zero factor zeroes everything after it, not before."""
