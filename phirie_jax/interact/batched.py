@@ -88,7 +88,7 @@ MAX_IMAGES = 256  # images rasterized at once per device: bounds the merged list
 # (experiments/results/bench_env_640x480_h100_prefetch.json); measured on that scene only.
 # Chunks of 16 entries: with the running products (80 registers a thread), 8,377 and 8,380
 # frames/s against 8,220 and 8,241 at 8, alternated in one process; 5,368 at 16 without reading
-# ahead (experiments/results/bench_env_640x480_h100_products.json).
+# ahead (experiments/results/bench_env_640x480_h100_products.json); measured on the demo scene only.
 WORLD_RASTER = RasterConfig(pallas=PallasSettings(chunk=16, prefetch=True))
 PIXEL_TYPES = {"uint8": jnp.uint8, "bfloat16": jnp.bfloat16, "float32": jnp.float32}
 

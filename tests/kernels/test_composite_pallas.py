@@ -21,7 +21,7 @@ from kernels.project import project_gaussians
 from kernels.raster import RasterConfig, bin_gaussians, composite_params, rasterize
 from tests.kernels.test_raster import camera, random_scene
 
-IMAGE_ATOL = 1e-6   # same float32 sums in another order (cumulative sum vs triangle product)
+IMAGE_ATOL = 1e-6   # same float32 sums in another order (running products vs triangle product)
 GRAD_RTOL = 1e-5    # gradients, relative to the largest entry of each group
 WIDTH, HEIGHT = 40, 30  # 3 × 2 tiles, partial on both axes
 CHUNK = 8           # small, so a tile list spans several chunks
