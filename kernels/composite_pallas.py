@@ -131,6 +131,20 @@ def _load_rows(params_ref, ids, valid):
             for k in range(params_ref.shape[1])]
 
 
+def _load_rows_of_two(first_ref, second_ref, ids, valid):
+    """As ``_load_rows`` from the rows of two sets one after the other, without joining them:
+    ids (B,) int32 < N₁ are rows of first_ref (N₁, D), the others rows of second_ref (N₂, D)
+    from N₁ on; valid (B,) bool. Each entry reads only its own set's row (the other load is
+    masked off)."""
+    n1, n2 = first_ref.shape[0], second_ref.shape[0]
+    in_first = ids < n1
+    first_ids, second_ids = jnp.minimum(ids, n1 - 1), jnp.clip(ids - n1, 0, n2 - 1)
+    return [jnp.where(in_first,
+                      plgpu.load(first_ref.at[first_ids, k], mask=valid & in_first, other=0.0),
+                      plgpu.load(second_ref.at[second_ids, k], mask=valid & ~in_first, other=0.0))
+            for k in range(first_ref.shape[1])]
+
+
 class _Chunks:
     """A tile's chunks in a given order, read ahead when ``prefetch`` is on.
 
@@ -140,10 +154,11 @@ class _Chunks:
     composited, and the ids after it are read.
     """
 
-    def __init__(self, ids_ref, params_ref, start, end, chunk: int, first: Callable,
+    def __init__(self, ids_ref, load_rows: Callable, start, end, chunk: int, first: Callable,
                  prefetch: bool):
-        """ids_ref (C,) and params_ref (N, D) refs; start () and end () int32 as in ``_load_ids``."""
-        self.ids_ref, self.params_ref = ids_ref, params_ref
+        """ids_ref (C,) ref; load_rows(ids (B,), valid (B,)) → the D parameter columns, each (B,)
+        (``_load_rows``); start () and end () int32 as in ``_load_ids``."""
+        self.ids_ref, self.load_rows = ids_ref, load_rows
         self.start, self.end, self.chunk = start, end, chunk
         self.first, self.prefetch = first, prefetch
 
@@ -154,17 +169,17 @@ class _Chunks:
     def initial(self) -> tuple:
         """The loop state before the first chunk."""
         pos, valid, ids = self._ids(0)
-        current = (pos, valid, ids, _load_rows(self.params_ref, ids, valid))
+        current = (pos, valid, ids, self.load_rows(ids, valid))
         return (current, self._ids(1)) if self.prefetch else (current,)
 
     def take(self, j, state: tuple):
         """The j-th chunk (j () int32): (pos, valid, ids, rows) and the state for step j + 1."""
         if not self.prefetch:
             pos, valid, ids = self._ids(j)
-            current = (pos, valid, ids, _load_rows(self.params_ref, ids, valid))
+            current = (pos, valid, ids, self.load_rows(ids, valid))
             return current, state
         current, (pos, valid, ids) = state
-        following = (pos, valid, ids, _load_rows(self.params_ref, ids, valid))
+        following = (pos, valid, ids, self.load_rows(ids, valid))
         return current, (following, self._ids(j + 2))
 
 
@@ -226,16 +241,38 @@ def _forward_kernel(grid: TileGrid, settings: PallasSettings, with_last: bool, s
     pixel's last contributor, 0 if none: what the backward needs, left out of a render that is
     not differentiated)."""
     tile = pl.program_id(0)
+    _walk_front_to_back(settings, with_last, _pixel_centres(grid, tile, params_ref.dtype),
+                        start_ref[tile], count_ref[tile], ids_ref, partial(_load_rows, params_ref),
+                        params_ref.shape[1], tile, acc_ref, trans_ref, walked_ref, last_ref)
+
+
+def _two_sets_forward_kernel(image: TileGrid, settings: PallasSettings, start_ref, count_ref, ids_ref,
+                             tiles_ref, first_ref, second_ref, acc_ref, trans_ref, walked_ref):
+    """List k front to back over the pixels of image tile tiles_ref[k], its rows read from two
+    sets (``_load_rows_of_two``: first_ref (N₁, D), second_ref (N₂, D)). start_ref (T,) int32;
+    count_ref (T,) int32; ids_ref (C,) int32; tiles_ref (T,) int32; out: acc_ref (T, CH, P),
+    trans_ref (T, P), walked_ref (T,) int32, as ``_forward_kernel``'s per list."""
+    k = pl.program_id(0)
+    _walk_front_to_back(settings, False, _pixel_centres(image, tiles_ref[k], first_ref.dtype),
+                        start_ref[k], count_ref[k], ids_ref, partial(_load_rows_of_two, first_ref, second_ref),
+                        first_ref.shape[1], k, acc_ref, trans_ref, walked_ref, None)
+
+
+def _walk_front_to_back(settings: PallasSettings, with_last: bool, pixels: tuple, start, count, ids_ref,
+                        load_rows: Callable, num_columns: int, out, acc_ref, trans_ref, walked_ref, last_ref):
+    """Composite one list front to back and write row out () int32 of the outputs acc_ref
+    (R, CH, P), trans_ref (R, P), walked_ref (R,) int32 and, with ``with_last``, last_ref
+    (R, P) int32 (``_forward_kernel``). pixels: (px (P,), py (P,), inside (P,) bool)
+    (``_pixel_centres``); the list's entries start () to start + count () of ids_ref (C,)
+    int32, their D = num_columns parameter columns from load_rows (``_Chunks``)."""
     chunk, block = settings.chunk, _Block(settings.forward_entries_major)
     pix, ent = block.pix, block.ent
-    num_columns = params_ref.shape[1]
     channels = num_columns - NUM_GEOMETRY
-    dtype = params_ref.dtype
-    start, count = start_ref[tile], count_ref[tile]
-    px, py, inside = _pixel_centres(grid, tile, dtype)
-    npix = grid.tile_pixels
+    px, py, inside = pixels
+    dtype = px.dtype
+    npix = px.shape[0]
     n_chunks = (count + chunk - 1) // chunk
-    chunks = _Chunks(ids_ref, params_ref, start, count, chunk, lambda i: i * chunk, settings.prefetch)
+    chunks = _Chunks(ids_ref, load_rows, start, count, chunk, lambda i: i * chunk, settings.prefetch)
 
     def cond(carry):
         i, _, done, _, _, _ = carry
@@ -267,11 +304,11 @@ def _forward_kernel(grid: TileGrid, settings: PallasSettings, with_last: bool, s
              tuple(jnp.zeros((npix,), dtype) for _ in range(channels)), chunks.initial())
     walked, trans, _, last, acc, _ = jax.lax.while_loop(cond, body, carry)
     for k in range(channels):
-        acc_ref[tile, k, :] = acc[k]
-    trans_ref[tile, :] = trans
-    walked_ref[tile] = walked
+        acc_ref[out, k, :] = acc[k]
+    trans_ref[out, :] = trans
+    walked_ref[out] = walked
     if with_last:
-        last_ref[tile, :] = last
+        last_ref[out, :] = last
 
 
 def _backward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, ids_ref, params_ref,
@@ -294,7 +331,7 @@ def _backward_kernel(grid: TileGrid, settings: PallasSettings, start_ref, ids_re
     g_acc = [g_acc_ref[tile, k, :] for k in range(channels)]
     end = jnp.max(last)  # entries after every pixel's last contributor changed nothing
     n_chunks = (end + chunk - 1) // chunk
-    chunks = _Chunks(ids_ref, params_ref, start, end, chunk,
+    chunks = _Chunks(ids_ref, partial(_load_rows, params_ref), start, end, chunk,
                      lambda j: (n_chunks - 1 - j) * chunk, settings.prefetch)
 
     def body(j, carry):
@@ -369,6 +406,51 @@ def composite_pallas_forward(grid: TileGrid, settings: PallasSettings, params, l
         name="composite_forward",
     )(lists.tile_start, lists.tile_count, lists.gaussian_ids, params)
     return jnp.swapaxes(acc, 1, 2), trans, walked, (last[0] if with_last else None)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def composite_two_sets(image: TileGrid, settings: PallasSettings, first_params, second_params,
+                       lists: TileLists, tiles):
+    """The forward over T lists, list k over the pixels of image tile tiles[k] (tiles (T,)
+    int32), its entries' rows read from two sets without joining them (ids < N₁: rows of
+    first_params (N₁, D), the others rows of second_params (N₂, D) from N₁ on): what
+    ``composite_pallas_forward`` gives for the joined rows, list k's pixels those of image
+    tile tiles[k] (lists: ``TileLists`` of T tiles over the joined ids).
+
+    For many worlds over one static set: the static rows are read where they lie (shared by
+    every world; under vmap they may stay unbatched), and no per-list copy of the rows is made.
+    Returns acc (T, P, CH), transmittance (T, P) and walked (T,) int32. Not differentiable
+    (``composite_pallas`` is)."""
+    t, npix = tiles.shape[0], image.tile_pixels
+    channels = first_params.shape[1] - NUM_GEOMETRY
+    dtype = first_params.dtype
+    acc, trans, walked = pl.pallas_call(
+        partial(_two_sets_forward_kernel, image, settings),
+        out_shape=(jax.ShapeDtypeStruct((t, channels, npix), dtype),
+                   jax.ShapeDtypeStruct((t, npix), dtype),
+                   jax.ShapeDtypeStruct((t,), jnp.int32)),
+        grid=(t,),
+        interpret=settings.interpret,
+        compiler_params=_compiler_params(settings, settings.num_warps),
+        name="composite_forward_two_sets",
+    )(lists.tile_start, lists.tile_count, lists.gaussian_ids, tiles, first_params,
+      second_params.astype(dtype))
+    return jnp.swapaxes(acc, 1, 2), trans, walked
+
+
+def _composite_two_sets_fwd(image: TileGrid, settings: PallasSettings, first_params, second_params,
+                            lists: TileLists, tiles):
+    """The primal and no residual: first_params (N₁, D), second_params (N₂, D), tiles (T,) int32."""
+    return composite_two_sets(image, settings, first_params, second_params, lists, tiles), None
+
+
+def _composite_two_sets_bwd(image: TileGrid, settings: PallasSettings, residuals: None, cotangents: tuple):
+    """No backward: differentiating a render through ``composite_two_sets`` is refused."""
+    raise NotImplementedError("composite_two_sets has no backward: differentiate through "
+                              "composite_pallas (e.g. kernels.raster_merge.rasterize_over_static)")
+
+
+composite_two_sets.defvjp(_composite_two_sets_fwd, _composite_two_sets_bwd)
 
 
 def composite_pallas_backward(grid: TileGrid, settings: PallasSettings, params, lists: TileLists,

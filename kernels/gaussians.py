@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from kernels.pytree import pytree_dataclass
-from kernels.sh import rotate_sh, sh_degree_from_coeffs
+from kernels.sh import rotate_sh_bands, sh_band_rotations, sh_degree_from_coeffs
 
 QUAT_EPS = 1e-12  # guards the normalization of a zero quaternion
 
@@ -190,30 +190,42 @@ def transform_gaussians(gaussians: Gaussians, transform: Sim3) -> Gaussians:
     """The Gaussian set moved by a similarity: μ' = sRμ + t, Σ' = s² R Σ Rᵀ.
 
     ``transform`` is one Sim3 for the whole set, or one per Gaussian (leaves with a
-    leading (N,) axis, e.g. gathered from per-body transforms by a body index).
+    leading (N,) axis).
     Σ' is expressed exactly in the stored parameters (q' = q_R ⊗ q, log s' = log s + log s_T),
     and the SH coefficients of degree 1–3 are rotated so view-dependent colour turns
     with the object.
     """
-    rot_quat = quat_normalize(transform.quat)
-    rot = quat_to_rotmat(rot_quat)
-    scale = jnp.asarray(transform.scale)
-    return Gaussians(
-        means=scale[..., None] * jnp.einsum("...ij,...j->...i", rot, gaussians.means)
-        + transform.translation,
-        quats=quat_multiply(rot_quat, gaussians.quats),
-        log_scales=gaussians.log_scales + jnp.log(scale)[..., None],
-        opacity_logits=gaussians.opacity_logits,
-        sh=rotate_sh(gaussians.sh, rot),
-    )
+    return _moved(gaussians, transform, None)
 
 
 def transform_bodies(gaussians: Gaussians, transforms: Sim3, body) -> Gaussians:
-    """Each Gaussian moved by the transform of its body.
+    """Each Gaussian moved by the transform of its body (``transform_gaussians``).
 
     transforms: Sim3 with (K,) leaves (one per body); body: (N,) int body index per Gaussian.
+    Each body's rotation and SH band matrices are built once and gathered per Gaussian.
     """
-    return transform_gaussians(gaussians, jax.tree.map(lambda leaf: leaf[body], transforms))
+    return _moved(gaussians, transforms, body)
+
+
+def _moved(gaussians: Gaussians, transform: Sim3, body) -> Gaussians:
+    """``transform_gaussians`` with each Gaussian's transform gathered from ``transform``'s
+    leaves by body (N,) int32, or the transform as it is (body None)."""
+    rot_quat = quat_normalize(transform.quat)
+    rot = quat_to_rotmat(rot_quat)
+    parts = (rot_quat, rot, jnp.asarray(transform.scale), transform.translation,
+             sh_band_rotations(rot, sh_degree_from_coeffs(gaussians.sh.shape[-2])))
+    if body is not None:
+        parts = jax.tree.map(lambda leaf: leaf[body], parts)
+    rot_quat, rot, scale, translation, bands = parts
+    # R μ as three broadcast products (elementwise: fused, no batched matrix product)
+    rotated = sum(rot[..., :, k] * gaussians.means[..., k:k + 1] for k in range(3))
+    return Gaussians(
+        means=scale[..., None] * rotated + translation,
+        quats=quat_multiply(rot_quat, gaussians.quats),
+        log_scales=gaussians.log_scales + jnp.log(scale)[..., None],
+        opacity_logits=gaussians.opacity_logits,
+        sh=rotate_sh_bands(gaussians.sh, bands),
+    )
 
 
 def concatenate(parts: list[Gaussians]) -> Gaussians:

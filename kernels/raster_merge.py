@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from kernels.composite import TileGrid, TileLists
+from kernels.composite_pallas import composite_two_sets
 from kernels.gaussians import Gaussians
 from kernels.project import project_gaussians
 from kernels.pytree import pytree_dataclass
@@ -274,9 +275,15 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
                              jnp.where(used, lists.tile_count[tiles], 0))
     merged = merge_tile_lists(strip, static, static_depths, moving_lists, depths, view.params.shape[0],
                               longest_static_run)
-    rows = _strip_rows(grid, merged, tiles, view.params, composite_params(proj, features, config.depth))
-    entries = TileLists(jnp.arange(rows.shape[0], dtype=jnp.int32), merged.tile_start, merged.tile_count)
-    acc, trans, steps, too_long = composite_rows(strip, config, rows, entries)
+    moving_params = composite_params(proj, features, config.depth)
+    if config.resolved_compositor() == "pallas":
+        # each list composites its image tile's pixels, reading the rows where they lie
+        acc, trans, walked = composite_two_sets(grid, config.pallas, view.params, moving_params, merged, tiles)
+        steps, too_long = jnp.max(walked), jnp.zeros((), bool)
+    else:
+        rows = _strip_rows(grid, merged, tiles, view.params, moving_params)
+        entries = TileLists(jnp.arange(rows.shape[0], dtype=jnp.int32), merged.tile_start, merged.tile_count)
+        acc, trans, steps, too_long = composite_rows(strip, config, rows, entries)
 
     # each image tile from its strip tile if it has one, else the static image (one gather)
     strip_tile = jnp.full(grid.num_tiles, -1, jnp.int32).at[jnp.where(used, tiles, grid.num_tiles)].set(

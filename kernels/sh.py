@@ -129,6 +129,33 @@ def sh_band_rotation(rotation, band: int):
     return inv @ rotated
 
 
+def sh_band_rotations(rotation, degree: int) -> tuple:
+    """(W₁, …, W_degree): each band's (..., 2l+1, 2l+1) matrix for rotation (..., 3, 3)
+    (``sh_band_rotation``; NumPy or JAX). Built once per rotation, they rotate any number of
+    coefficient sets (``rotate_sh_bands``)."""
+    return tuple(sh_band_rotation(rotation, band) for band in range(1, degree + 1))
+
+
+def rotate_sh_bands(coeffs, bands: tuple):
+    """coeffs (..., K, 3) rotated by the band matrices ``bands`` (``sh_band_rotations``, one per
+    band of degree 1 and up, leading dimensions broadcasting against those of coeffs).
+
+    c'_l = W_l c_l written as 2l+1 broadcast products and a sum: under vmap only elementwise
+    operations, which a GPU fuses into their consumer (a batch of tiny matrix products would
+    be a matrix-multiply kernel of its own for each band)."""
+    xp = np if isinstance(coeffs, np.ndarray) and all(isinstance(w, np.ndarray) for w in bands) else jnp
+    degree = sh_degree_from_coeffs(coeffs.shape[-2])
+    if len(bands) != degree:
+        raise ValueError(f"rotate_sh_bands: {len(bands)} band matrices for SH of degree {degree}")
+    lead = np.broadcast_shapes(coeffs.shape[:-2], *(w.shape[:-2] for w in bands))
+    out = [xp.broadcast_to(coeffs[..., :1, :], lead + (1, 3))]
+    for band, w in enumerate(bands, start=1):
+        lo, hi = band * band, (band + 1) ** 2
+        w = w.astype(coeffs.dtype)
+        out.append(xp.sum(w[..., :, :, None] * coeffs[..., None, lo:hi, :], axis=-2))
+    return xp.concatenate(out, axis=-2)
+
+
 def rotate_sh(coeffs, rotation):
     """Coefficients of the same radiance field rotated by ``rotation``.
 
@@ -137,12 +164,11 @@ def rotate_sh(coeffs, rotation):
     satisfies eval_sh(rotate_sh(c, R), d) = eval_sh(c, Rᵀ d): the colour seen along d
     after an object rotates by R is the colour it showed along Rᵀ d before.
     """
-    xp = np if isinstance(coeffs, np.ndarray) and isinstance(rotation, np.ndarray) else jnp
-    degree = sh_degree_from_coeffs(coeffs.shape[-2])
-    bands = [xp.broadcast_to(coeffs[..., :1, :], np.broadcast_shapes(
-        coeffs.shape[:-2], rotation.shape[:-2]) + (1, 3))]
-    for band in range(1, degree + 1):
-        lo, hi = band * band, (band + 1) ** 2
-        w = sh_band_rotation(rotation, band).astype(coeffs.dtype)
-        bands.append(xp.einsum("...ij,...jc->...ic", w, coeffs[..., lo:hi, :]))
-    return xp.concatenate(bands, axis=-2)
+    rotated = rotate_sh_bands(coeffs, sh_band_rotations(rotation, sh_degree_from_coeffs(coeffs.shape[-2])))
+    # degree 0 has no band matrix: the rotations' leading dimensions still broadcast
+    lead = np.broadcast_shapes(rotated.shape[:-2], rotation.shape[:-2])
+    if lead == rotated.shape[:-2]:
+        return rotated
+    if isinstance(rotated, np.ndarray) and isinstance(rotation, np.ndarray):
+        return np.broadcast_to(rotated, lead + rotated.shape[-2:]).copy()  # writable, as NumPy's results are
+    return jnp.broadcast_to(rotated, lead + rotated.shape[-2:])

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from jax import export
 
-from kernels.composite import TileGrid
-from kernels.composite_pallas import PallasSettings, composite_pallas, composite_pallas_forward
+from kernels.composite import TileGrid, TileLists
+from kernels.composite_pallas import PallasSettings, composite_pallas, composite_pallas_forward, composite_two_sets
 from kernels.gaussians import Gaussians
 from kernels.project import project_gaussians
 from kernels.raster import RasterConfig, bin_gaussians, composite_params, rasterize
@@ -158,6 +158,53 @@ def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_
         assert int(steps) == walked.max()
 
 
+def test_two_sets_composite_as_their_joined_rows_at_the_chosen_tiles():
+    """Rows read from two sets where they lie, each list over the pixels of the image tile it
+    names: the same sums as the forward over the joined rows at those tiles, bit for bit, at
+    any split of the rows, with and without reading ahead; under vmap the first set may be
+    shared (unbatched); and no gradient is pretended."""
+    K, w2c = camera(WIDTH, HEIGHT)
+    g, feats = random_scene(seed=5, n=120)
+    grid = TileGrid(WIDTH, HEIGHT)
+
+    @jax.jit
+    def rows_and_lists(g, feats):
+        proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
+        return composite_params(proj, feats), bin_gaussians(proj, grid, 1 << 11)[0]
+
+    params, lists = rows_and_lists(g, feats)
+    tiles = jnp.array([3, 1, 4, 0], jnp.int32)  # out of order; the last list left empty
+    count = lists.tile_count[tiles].at[3].set(0)
+    assert np.all(np.asarray(count[:3]) > CHUNK)
+    chosen = TileLists(lists.gaussian_ids, lists.tile_start[tiles], count)
+    two_sets = jax.jit(composite_two_sets, static_argnums=(0, 1))
+    for prefetch in (False, True):
+        settings = dataclasses.replace(PALLAS.pallas, prefetch=prefetch)
+        acc, trans, _, _ = composite_pallas_forward(grid, settings, params, lists, with_last=False)
+        for split in (1, 57, params.shape[0] - 1):
+            got_acc, got_trans, walked = two_sets(grid, settings, params[:split], params[split:], chosen, tiles)
+            np.testing.assert_array_equal(got_acc[:3], acc[tiles[:3]], err_msg=f"{prefetch} {split}")
+            np.testing.assert_array_equal(got_trans[:3], trans[tiles[:3]], err_msg=f"{prefetch} {split}")
+            np.testing.assert_array_equal(got_acc[3], 0.0)
+            np.testing.assert_array_equal(got_trans[3], 1.0)
+            assert int(walked[3]) == 0 and np.all(np.asarray(walked[:3]) > 0)
+
+    # many worlds over one static set: the first set unbatched, the second per world
+    split = 57
+    dimmer = params[split:].at[:, 5].multiply(0.5)  # the moving rows' opacities halved
+    batched = jax.jit(jax.vmap(lambda second: composite_two_sets(grid, PALLAS.pallas, params[:split], second,
+                                                                 chosen, tiles)))
+    acc_b, trans_b, _ = batched(jnp.stack([params[split:], dimmer]))
+    for world, second in enumerate((params[split:], dimmer)):
+        acc_w, trans_w, _ = two_sets(grid, PALLAS.pallas, params[:split], second, chosen, tiles)
+        np.testing.assert_array_equal(acc_b[world], acc_w)
+        np.testing.assert_array_equal(trans_b[world], trans_w)
+    assert not np.array_equal(acc_b[0], acc_b[1])
+    with pytest.raises(NotImplementedError, match="no backward"):
+        jax.grad(lambda second: jnp.sum(composite_two_sets(grid, PALLAS.pallas, params[:split], second,
+                                                           chosen, tiles)[0]))(params[split:])
+
+
 @pytest.mark.parametrize("field", ["chunk", "backward_chunk", "num_warps", "backward_num_warps"])
 @pytest.mark.parametrize("value", [0, 3, 6])
 def test_settings_want_powers_of_two(field, value):
@@ -194,3 +241,12 @@ def test_kernels_lower_to_triton(entries_major):
                                  disabled_checks=[export.DisabledSafetyCheck.custom_call(
                                      "__gpu$xla.gpu.triton")])(*args)
     assert re.findall(r'name = "composite_forward"[^}]*num_warps = (\d+)', forward_only.mlir_module()) == ["4"]
+    # and the forward over two sets of rows (the batched worlds' changed tiles)
+    two_sets = export.export(
+        jax.jit(lambda first, second, ids, start, count, tiles: composite_two_sets(
+            grid, settings, first, second, TileLists(ids, start, count), tiles)), platforms=["cuda"],
+        disabled_checks=[export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")])(
+        jax.ShapeDtypeStruct((n, 11), jnp.float32), jax.ShapeDtypeStruct((n // 2, 11), jnp.float32), *args[1:],
+        jax.ShapeDtypeStruct((grid.num_tiles,), jnp.int32))
+    assert re.findall(r'name = "composite_forward_two_sets"[^}]*num_warps = (\d+)',
+                      two_sets.mlir_module()) == ["4"]

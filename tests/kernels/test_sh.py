@@ -14,6 +14,8 @@ from kernels.sh import (
     num_sh_coeffs,
     rgb_to_sh_dc,
     rotate_sh,
+    rotate_sh_bands,
+    sh_band_rotations,
     sh_basis,
     sh_degree_from_coeffs,
     sh_to_rgb,
@@ -103,6 +105,26 @@ def test_rotation_group_properties(x64):
             jnp.sum(rotated[lo:hi] ** 2), jnp.sum(c[lo:hi] ** 2), rtol=1e-10
         )
     np.testing.assert_array_equal(rotated[0], c[0])
+
+
+def test_band_matrices_built_once_rotate_each_set_as_its_own_rotation(x64):
+    """Band matrices of 3 rotations, gathered for 40 coefficient sets: each set rotated as
+    ``rotate_sh`` rotates it by its own rotation, and each band the matrix product W_l c_l
+    (a loop reference); a wrong number of bands is refused."""
+    rng = np.random.default_rng(12)
+    rots = jnp.asarray(Rotation.random(3, random_state=12).as_matrix())
+    body = rng.integers(0, 3, 40)
+    coeffs = jnp.asarray(rng.normal(size=(40, 16, 3)))
+    bands = sh_band_rotations(rots, 3)
+    got = rotate_sh_bands(coeffs, tuple(w[body] for w in bands))
+    np.testing.assert_allclose(got, jax.vmap(rotate_sh)(coeffs, rots[body]), atol=ROTATION_TOL_F64)
+    for n in range(40):
+        for band, w in enumerate(bands, start=1):
+            lo, hi = band * band, (band + 1) ** 2
+            np.testing.assert_allclose(got[n, lo:hi], np.asarray(w[body[n]]) @ np.asarray(coeffs[n, lo:hi]),
+                                       atol=1e-12)
+    with pytest.raises(ValueError, match="2 band matrices for SH of degree 3"):
+        rotate_sh_bands(coeffs, bands[:2])
 
 
 def test_degree_inference():
