@@ -16,10 +16,13 @@ stable sort breaks them (static first, then by index).
 ``rasterize_changed_tiles`` gives the same image with less work: a tile that no moving
 Gaussian reaches looks as the static set alone makes it, which ``static_view`` composites
 once (``StaticView.acc``, ``StaticView.trans``). Per render only the changed tiles — those
-in the moving set's lists — have their static lists gathered, merged with the moving
-entries and composited, packed into a compact block of tiles as wide as the image (each
-tile moves up and left, so its coordinates stay in the image's range); their pixels then
-replace the static ones.
+in the moving set's lists — have their static lists gathered and merged with the moving
+entries into a compact block of lists, then composited; their pixels then replace the static
+ones. The Pallas compositor (a GPU's) composites each list over its own image tile's pixels,
+reading each entry's row from the static rows or the moving ones where they lie
+(``kernels.composite_pallas.composite_two_sets``). The JAX compositor composites a block of
+tiles as wide as the image, each entry's row gathered and its centre moved to its tile's place
+in the block (each tile moves up and left, so its coordinates stay in the image's range).
 """
 
 from __future__ import annotations
@@ -231,8 +234,9 @@ def _strip_rows(grid: TileGrid, lists: TileLists, tiles, static_params, moving_p
     compact = _run_of(lists.tile_start, entries)
     ts = grid.tile_size
     tx = grid.tiles_x
-    # each compact tile's shift once, gathered per entry: no integer division per entry (on one
-    # H100 the worlds' 1,024 × 4 frames at 640×480 went from 8,355–8,393 to 8,538 frames/s)
+    # each compact tile's shift once, gathered per entry: no integer division per entry (when the
+    # GPU built these rows too, the worlds' 1,024 × 4 frames at 640×480 on one H100 went from
+    # 8,355–8,393 to 8,538 frames/s)
     k = jnp.arange(tiles.shape[0], dtype=jnp.int32)
     tile_shift = jnp.stack([(k % tx - tiles % tx) * ts, (k // tx - tiles // tx) * ts], axis=1).astype(rows.dtype)
     shift = tile_shift[compact]

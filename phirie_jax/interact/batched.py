@@ -82,11 +82,12 @@ from phirie_jax.rotations import pose_matrix
 from phirie_jax.types import Camera
 
 MAX_IMAGES = 256  # images rasterized at once per device: bounds the merged lists' memory
-# The worlds' compositor reads each chunk's list entries and rows ahead (PallasSettings.prefetch):
-# the changed tiles' rows lie one after another. On one H100, the demo scene's 1,024 worlds × 4
-# cameras at 640×480: 6,322 frames/s against 5,998 without, in one process
-# (experiments/results/bench_env_640x480_h100_prefetch.json); measured on that scene only.
-# Chunks of 16 entries: with the running products (80 registers a thread), 8,377 and 8,380
+# The worlds' compositor reads each chunk's list entries and rows ahead (PallasSettings.prefetch).
+# Measured when the changed tiles' rows lay one after another (a strip of rows built per image),
+# on one H100, the demo scene's 1,024 worlds × 4 cameras at 640×480: 6,322 frames/s against 5,998
+# without, in one process (experiments/results/bench_env_640x480_h100_prefetch.json); on that
+# scene only, and not again since the compositor reads the rows where they lie (composite_two_sets).
+# Chunks of 16 entries: with the running products (80 registers a thread at 8, 115 at 16), 8,377 and 8,380
 # frames/s against 8,220 and 8,241 at 8, alternated in one process; 5,368 at 16 without reading
 # ahead (experiments/results/bench_env_640x480_h100_products.json); measured on the demo scene only.
 WORLD_RASTER = RasterConfig(pallas=PallasSettings(chunk=16, prefetch=True))

@@ -22,10 +22,9 @@ kind runs one unit of work (a step, a tick) plainly, which compiles and loads ev
 records ``GRAPH_STEPS`` steps (``GRAPH_TICKS`` ticks) as one graph that later calls launch. With
 several GPUs each launches its graphs from its own host thread: a graph launch costs the host
 time in proportion to its nodes, and from one thread the GPUs' graphs ran as if one after the
-other (1,024 worlds, 240 steps on two H200s: 0.59 s against 0.40 s on one;
-``experiments/results/scaling_2gpu_warp.json``). The drop tests measured the same and gained
-from a thread per GPU (``docs/scaling.md``); the worlds' threads are not yet measured on two
-GPUs. On a CPU the kernels are launched one by one.
+other (1,024 worlds, 240 steps on two H200s: 0.59 s against 0.40 s on one); from a thread per
+GPU, 0.35 s (``experiments/results/scaling_2gpu_warp.json``; the drop tests measured the same,
+``docs/scaling.md``). On a CPU the kernels are launched one by one.
 
 Contact and constraint capacities are per world (``capacity``): MuJoCo Warp allocates them
 ahead and drops what does not fit, so ``overflow()`` says which worlds ran out (the run then
