@@ -16,6 +16,11 @@ division as 3DGS does (safe: α ≤ 0.99 and T ≥ 1e-4), reduces each entry's g
 tile's pixels and adds it to its Gaussian's row with atomic adds (the order of those float
 additions varies from run to run: gradients agree to rounding, not bit for bit).
 
+``composite_two_sets`` runs the same forward walk over lists whose entries' rows lie in two
+sets (a static set shared by many renders and a moving set of each) and whose pixels are those
+of any image tile named per list: the batched worlds' changed tiles, composited with no copy of
+their rows (``kernels.raster_merge.rasterize_changed_tiles``). It has no backward.
+
 Lowered through Triton on a GPU; ``interpret=True`` runs the same kernel bodies on any
 backend (the CPU tests compare them with ``kernels.composite``).
 """
