@@ -122,6 +122,15 @@ def test_lists_cut_by_the_capacity_composite_alike():
                                    err_msg=f"read ahead {key}")
 
 
+@jax.jit
+def rows_and_lists(g, feats, K, w2c):
+    """The compositor's rows of g (N Gaussians) with feats (N, F) and their tile lists (2,048
+    slots), for a WIDTH × HEIGHT camera K (3, 3), w2c (4, 4)."""
+    grid = TileGrid(WIDTH, HEIGHT)
+    proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
+    return composite_params(proj, feats), bin_gaussians(proj, grid, 1 << 11)[0]
+
+
 def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_chunks():
     """Rendered without differentiating, the forward tracks no last contributor (the backward's
     residual) and composites the same pixels; each tile's walked chunks cover its last
@@ -131,13 +140,7 @@ def test_a_forward_without_last_contributors_composites_the_same_and_counts_its_
     # larger and more opaque: every tile's pixels saturate before its list ends
     g = g.replace(opacity_logits=jnp.full_like(g.opacity_logits, 3.0), log_scales=g.log_scales + 2.0)
     grid = TileGrid(WIDTH, HEIGHT)
-
-    @jax.jit
-    def rows_and_lists(g, feats):
-        proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
-        return composite_params(proj, feats), bin_gaussians(proj, grid, 1 << 11)[0]
-
-    params, lists = rows_and_lists(g, feats)
+    params, lists = rows_and_lists(g, feats, K, w2c)
     count = np.asarray(lists.tile_count)
     forward = jax.jit(composite_pallas_forward, static_argnums=(0, 1), static_argnames=("with_last",))
     for prefetch in (False, True):
@@ -166,13 +169,7 @@ def test_two_sets_composite_as_their_joined_rows_at_the_chosen_tiles():
     K, w2c = camera(WIDTH, HEIGHT)
     g, feats = random_scene(seed=5, n=120)
     grid = TileGrid(WIDTH, HEIGHT)
-
-    @jax.jit
-    def rows_and_lists(g, feats):
-        proj = project_gaussians(g, K, w2c, width=WIDTH, height=HEIGHT, tile_size=grid.tile_size)
-        return composite_params(proj, feats), bin_gaussians(proj, grid, 1 << 11)[0]
-
-    params, lists = rows_and_lists(g, feats)
+    params, lists = rows_and_lists(g, feats, K, w2c)
     tiles = jnp.array([3, 1, 4, 0], jnp.int32)  # out of order; the last list left empty
     count = lists.tile_count[tiles].at[3].set(0)
     assert np.all(np.asarray(count[:3]) > CHUNK)
