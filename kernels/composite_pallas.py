@@ -70,7 +70,9 @@ class PallasSettings:
         before they are composited, so the two dependent memory reads overlap the work of
         the chunks before. Measured on an H100 (compositor alone, garden, garden ×10 at
         1080p, random 100K): from 2 % faster to 11 % slower, so off by default. Where the
-        rows lie one after another (the batched worlds' changed tiles) it was 5 % faster.
+        rows lay one after another (the batched worlds' changed tiles, when a strip of rows
+        was built for them) it was 5 % faster; not re-measured since they are read where they
+        lie (``composite_two_sets``).
     forward_entries_major, backward_entries_major: lay each chunk out as a (B, P) block
         (entries × pixels) rather than (P, B) in the forward and the backward kernel.
         Triton spreads a block's last axis over a warp's threads, so entries-major keeps a
@@ -84,10 +86,11 @@ class PallasSettings:
     interpret: run the kernels in Pallas' interpreter (any backend; for tests).
 
     The figures above were measured before the kernels' running transmittances became running
-    products (``kernels.running_product``; the worlds' forward went from 128 registers a thread
-    to 80) and were not re-measured, except for the worlds' changed tiles at 640×480: there chunks
-    of 16 with read-ahead are now 2 % faster than 8 (``phirie_jax.interact.batched.WORLD_RASTER``),
-    8 warps 8–10 % slower.
+    products (``kernels.running_product``; the worlds' forward at chunks of 8 went from 128
+    registers a thread to 80) and were not re-measured, except for the worlds' changed tiles at
+    640×480, still read from a strip of rows: there chunks of 16 with read-ahead were 2 % faster
+    than 8 (``phirie_jax.interact.batched.WORLD_RASTER``; 115 registers a thread, and 120 in
+    ``composite_two_sets``), 8 warps 8–10 % slower.
     """
 
     chunk: int = 8
@@ -420,7 +423,8 @@ def composite_two_sets(image: TileGrid, settings: PallasSettings, first_params, 
     int32), its entries' rows read from two sets without joining them (ids < N₁: rows of
     first_params (N₁, D), the others rows of second_params (N₂, D) from N₁ on): what
     ``composite_pallas_forward`` gives for the joined rows, list k's pixels those of image
-    tile tiles[k] (lists: ``TileLists`` of T tiles over the joined ids).
+    tile tiles[k]. lists: ``TileLists`` over the joined ids, gaussian_ids (C,), tile_start (T,)
+    and tile_count (T,) int32.
 
     For many worlds over one static set: the static rows are read where they lie (shared by
     every world; under vmap they may stay unbatched), and no per-list copy of the rows is made.
@@ -450,7 +454,8 @@ def _composite_two_sets_fwd(image: TileGrid, settings: PallasSettings, first_par
 
 
 def _composite_two_sets_bwd(image: TileGrid, settings: PallasSettings, residuals: None, cotangents: tuple):
-    """No backward: differentiating a render through ``composite_two_sets`` is refused."""
+    """No backward: differentiating a render through ``composite_two_sets`` is refused
+    (cotangents: acc (T, P, CH), transmittance (T, P), walked (T,))."""
     raise NotImplementedError("composite_two_sets has no backward: differentiate through "
                               "composite_pallas (e.g. kernels.raster_merge.rasterize_over_static)")
 

@@ -219,12 +219,15 @@ def _moved(gaussians: Gaussians, transform: Sim3, body) -> Gaussians:
     rot_quat, rot, scale, translation, bands = parts
     # R μ as three broadcast products (elementwise: fused, no batched matrix product)
     rotated = sum(rot[..., :, k] * gaussians.means[..., k:k + 1] for k in range(3))
+    means = scale[..., None] * rotated + translation
+    sh = rotate_sh_bands(gaussians.sh, bands)
+    # degree 0 has no band matrix: the transform's leading dimensions still reach the colours
     return Gaussians(
-        means=scale[..., None] * rotated + translation,
+        means=means,
         quats=quat_multiply(rot_quat, gaussians.quats),
         log_scales=gaussians.log_scales + jnp.log(scale)[..., None],
         opacity_logits=gaussians.opacity_logits,
-        sh=rotate_sh_bands(gaussians.sh, bands),
+        sh=jnp.broadcast_to(sh, means.shape[:-1] + sh.shape[-2:]),
     )
 
 

@@ -257,6 +257,8 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
     view's longest tile list, or None (``merge_tile_lists``). Returns the ``RasterOutput`` (the same
     fields as ``rasterize_over_static``; ``steps`` counts the changed tiles' compositing, and
     ``overflow`` also says a changed-tile capacity was outgrown) and the ``TileUse``.
+    With the Pallas compositor (a GPU's) it is not differentiable (``composite_two_sets``);
+    ``rasterize_over_static`` is.
     """
     grid = TileGrid(width, height, config.tile_size)
     # the strip: whole rows of the image's width, at least tile_capacity tiles
@@ -281,6 +283,8 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
                               longest_static_run)
     moving_params = composite_params(proj, features, config.depth)
     if config.resolved_compositor() == "pallas":
+        if config.backward != "custom":
+            raise ValueError("RasterConfig: the Pallas compositor has only the custom backward")
         # each list composites its image tile's pixels, reading the rows where they lie
         acc, trans, walked = composite_two_sets(grid, config.pallas, view.params, moving_params, merged, tiles)
         steps, too_long = jnp.max(walked), jnp.zeros((), bool)

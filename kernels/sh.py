@@ -140,9 +140,12 @@ def rotate_sh_bands(coeffs, bands: tuple):
     """coeffs (..., K, 3) rotated by the band matrices ``bands`` (``sh_band_rotations``, one per
     band of degree 1 and up, leading dimensions broadcasting against those of coeffs).
 
-    c'_l = W_l c_l written as 2l+1 broadcast products and a sum: under vmap only elementwise
-    operations, which a GPU fuses into their consumer (a batch of tiny matrix products would
-    be a matrix-multiply kernel of its own for each band)."""
+    bands: (W₁ (..., 3, 3), …, W_d (..., 2d+1, 2d+1)) for degree d.
+
+    In JAX, c'_l = W_l c_l is written as 2l+1 broadcast products and a sum: under vmap only
+    elementwise operations, which a GPU fuses into their consumer (a batch of tiny matrix
+    products would be a matrix-multiply kernel of its own for each band). NumPy, which fuses
+    nothing, takes the matrix products."""
     xp = np if isinstance(coeffs, np.ndarray) and all(isinstance(w, np.ndarray) for w in bands) else jnp
     degree = sh_degree_from_coeffs(coeffs.shape[-2])
     if len(bands) != degree:
@@ -152,7 +155,11 @@ def rotate_sh_bands(coeffs, bands: tuple):
     for band, w in enumerate(bands, start=1):
         lo, hi = band * band, (band + 1) ** 2
         w = w.astype(coeffs.dtype)
-        out.append(xp.sum(w[..., :, :, None] * coeffs[..., None, lo:hi, :], axis=-2))
+        if xp is np:
+            out.append(np.broadcast_to(np.einsum("...ij,...jc->...ic", w, coeffs[..., lo:hi, :]),
+                                       lead + (hi - lo, 3)))
+        else:
+            out.append(jnp.sum(w[..., :, :, None] * coeffs[..., None, lo:hi, :], axis=-2))
     return xp.concatenate(out, axis=-2)
 
 

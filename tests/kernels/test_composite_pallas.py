@@ -174,26 +174,36 @@ def test_two_sets_composite_as_their_joined_rows_at_the_chosen_tiles():
     count = lists.tile_count[tiles].at[3].set(0)
     assert np.all(np.asarray(count[:3]) > CHUNK)
     chosen = TileLists(lists.gaussian_ids, lists.tile_start[tiles], count)
+    # splits at ids the chosen lists hold: that id is then the second set's first row
+    ids = np.asarray(lists.gaussian_ids)
+    present = np.unique(np.concatenate([ids[start:start + n] for start, n in
+                                        zip(np.asarray(chosen.tile_start[:3]), np.asarray(count[:3]))]))
+    splits = (int(present[1]), int(present[len(present) // 2]), int(present[-1]))
     two_sets = jax.jit(composite_two_sets, static_argnums=(0, 1))
     for prefetch in (False, True):
         settings = dataclasses.replace(PALLAS.pallas, prefetch=prefetch)
-        acc, trans, _, _ = composite_pallas_forward(grid, settings, params, lists, with_last=False)
-        for split in (1, 57, params.shape[0] - 1):
+        acc, trans, walked_all, _ = composite_pallas_forward(grid, settings, params, lists, with_last=False)
+        for split in splits:
             got_acc, got_trans, walked = two_sets(grid, settings, params[:split], params[split:], chosen, tiles)
             np.testing.assert_array_equal(got_acc[:3], acc[tiles[:3]], err_msg=f"{prefetch} {split}")
             np.testing.assert_array_equal(got_trans[:3], trans[tiles[:3]], err_msg=f"{prefetch} {split}")
+            np.testing.assert_array_equal(walked[:3], walked_all[tiles[:3]])
             np.testing.assert_array_equal(got_acc[3], 0.0)
             np.testing.assert_array_equal(got_trans[3], 1.0)
-            assert int(walked[3]) == 0 and np.all(np.asarray(walked[:3]) > 0)
+            assert int(walked[3]) == 0
 
-    # many worlds over one static set: the first set unbatched, the second per world
-    split = 57
+    # many worlds over one static set: the first set unbatched; the second, the lists and their
+    # tiles per world
+    split = splits[1]
     dimmer = params[split:].at[:, 5].multiply(0.5)  # the moving rows' opacities halved
-    batched = jax.jit(jax.vmap(lambda second: composite_two_sets(grid, PALLAS.pallas, params[:split], second,
-                                                                 chosen, tiles)))
-    acc_b, trans_b, _ = batched(jnp.stack([params[split:], dimmer]))
-    for world, second in enumerate((params[split:], dimmer)):
-        acc_w, trans_w, _ = two_sets(grid, PALLAS.pallas, params[:split], second, chosen, tiles)
+    other_tiles = jnp.array([4, 3, 1, 0], jnp.int32)
+    other = TileLists(lists.gaussian_ids, lists.tile_start[other_tiles], lists.tile_count[other_tiles].at[3].set(0))
+    batched = jax.jit(jax.vmap(lambda second, chosen, tiles: composite_two_sets(grid, PALLAS.pallas, params[:split],
+                                                                                second, chosen, tiles)))
+    worlds = ((params[split:], chosen, tiles), (dimmer, other, other_tiles))
+    acc_b, trans_b, _ = batched(*jax.tree.map(lambda *x: jnp.stack(x), *worlds))
+    for world, args in enumerate(worlds):
+        acc_w, trans_w, _ = two_sets(grid, PALLAS.pallas, params[:split], *args)
         np.testing.assert_array_equal(acc_b[world], acc_w)
         np.testing.assert_array_equal(trans_b[world], trans_w)
     assert not np.array_equal(acc_b[0], acc_b[1])
@@ -239,9 +249,11 @@ def test_kernels_lower_to_triton(entries_major):
                                      "__gpu$xla.gpu.triton")])(*args)
     assert re.findall(r'name = "composite_forward"[^}]*num_warps = (\d+)', forward_only.mlir_module()) == ["4"]
     # and the forward over two sets of rows (the batched worlds' changed tiles)
+    # with the batched worlds' settings (chunks of 16 read ahead)
+    worlds = dataclasses.replace(settings, prefetch=True)
     two_sets = export.export(
         jax.jit(lambda first, second, ids, start, count, tiles: composite_two_sets(
-            grid, settings, first, second, TileLists(ids, start, count), tiles)), platforms=["cuda"],
+            grid, worlds, first, second, TileLists(ids, start, count), tiles)), platforms=["cuda"],
         disabled_checks=[export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")])(
         jax.ShapeDtypeStruct((n, 11), jnp.float32), jax.ShapeDtypeStruct((n // 2, 11), jnp.float32), *args[1:],
         jax.ShapeDtypeStruct((grid.num_tiles,), jnp.int32))

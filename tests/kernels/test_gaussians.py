@@ -204,5 +204,8 @@ def test_per_body_transforms_match_one_transform_per_set(x64):
         ref = transform_gaussians(sub, t)
         for x, y in zip(jax.tree.leaves(jax.tree.map(lambda x: x[k::2], moved)), jax.tree.leaves(ref)):
             np.testing.assert_allclose(x, y, atol=EXACT_F64)
+    # degree 0 (no band matrix): the colours are left as they are
+    flat = g.replace(sh=g.sh[:, :1])
+    np.testing.assert_array_equal(transform_bodies(flat, transforms, body).sh, flat.sh)
     both = concatenate([g, g])
     assert both.num == 24 and both.sh.shape == (24, 16, 3)

@@ -169,9 +169,9 @@ def strip_scene():
     return K, w2c, static, moving, feats[:NUM_STATIC], feats[NUM_STATIC:][keep]
 
 
-# the Pallas compositor (interpreted on the CPU: slow to compile) equals the JAX one on every
-# list (test_composite_pallas); here it only walks a block of packed tiles
-@pytest.mark.parametrize("name", ["jax", pytest.param("pallas", marks=pytest.mark.slow)])
+# "jax": the JAX compositor over a strip of gathered rows (the CPU's path); "pallas": the
+# two-set compositor reading the rows where they lie (a GPU's path, interpreted here)
+@pytest.mark.parametrize("name", ["jax", "pallas"])
 def test_changed_tiles_render_the_concatenation(name):
     K, w2c, static, moving, f_static, f_moving = strip_scene()
     num_tiles = 7 * 5

@@ -127,6 +127,17 @@ def test_band_matrices_built_once_rotate_each_set_as_its_own_rotation(x64):
         rotate_sh_bands(coeffs, bands[:2])
 
 
+def test_numpy_in_numpy_out_writable_and_degree_zero_broadcasts():
+    """NumPy coefficients and rotations give a writable NumPy array (callers fill it in); at
+    degree 0 (no band matrix) the rotations' leading dimensions still broadcast."""
+    rots = Rotation.random(5, random_state=3).as_matrix()
+    rotated = rotate_sh(np.ones((5, 16, 3)), rots)
+    assert isinstance(rotated, np.ndarray) and rotated.flags.writeable and rotated.shape == (5, 16, 3)
+    dc = rotate_sh(np.full((1, 3), 0.25), rots)
+    assert dc.shape == (5, 1, 3) and dc.flags.writeable
+    np.testing.assert_array_equal(dc, 0.25)
+
+
 def test_degree_inference():
     assert [sh_degree_from_coeffs(k) for k in (1, 4, 9, 16)] == [0, 1, 2, 3]
     with pytest.raises(ValueError, match="not"):
