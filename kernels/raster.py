@@ -92,6 +92,8 @@ class RasterConfig:
         if self.compositor not in ("pallas", "jax"):
             raise ValueError(f"RasterConfig.compositor: {self.compositor!r} "
                              "(expected 'auto', 'pallas' or 'jax')")
+        if self.compositor == "pallas" and self.backward != "custom":
+            raise ValueError("RasterConfig: the Pallas compositor has only the custom backward")
         return self.compositor
 
     def resolved_sequential(self) -> bool:
@@ -301,8 +303,6 @@ def composite_rows(grid: TileGrid, config: RasterConfig, params, lists: TileList
     too_long () bool (a tile list longer than the autodiff scan covers: incomplete)."""
     too_long = jnp.zeros((), bool)
     if config.resolved_compositor() == "pallas":
-        if config.backward != "custom":
-            raise ValueError("RasterConfig: the Pallas compositor has only the custom backward")
         acc, trans, steps = composite_pallas(grid, config.pallas, params, lists.gaussian_ids,
                                              lists.tile_start, lists.tile_count)
     elif config.backward == "custom":

@@ -283,8 +283,6 @@ def rasterize_changed_tiles(view: StaticView, moving: Gaussians, K, world_to_cam
                               longest_static_run)
     moving_params = composite_params(proj, features, config.depth)
     if config.resolved_compositor() == "pallas":
-        if config.backward != "custom":
-            raise ValueError("RasterConfig: the Pallas compositor has only the custom backward")
         # each list composites its image tile's pixels, reading the rows where they lie
         acc, trans, walked = composite_two_sets(grid, config.pallas, view.params, moving_params, merged, tiles)
         steps, too_long = jnp.max(walked), jnp.zeros((), bool)

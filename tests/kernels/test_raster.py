@@ -379,3 +379,11 @@ def test_tile_reached_equals_checking_every_pixel_centre():
     near_limit = np.abs(q.min(axis=(1, 2)) - 2 * np.log(opacity / ALPHA_MIN)) < 1e-2
     assert np.array_equal(got[~near_limit], want[~near_limit])
     assert 0.2 < want.mean() < 0.8  # both answers are exercised
+
+
+def test_the_pallas_compositor_is_refused_without_its_custom_backward():
+    """Asked for explicitly with the autodiff backward, the Pallas compositor (which has only its
+    custom backward) is refused where every path resolves the compositor; "auto" then picks JAX."""
+    with pytest.raises(ValueError, match="only the custom backward"):
+        RasterConfig(compositor="pallas", backward="autodiff").resolved_compositor()
+    assert RasterConfig(backward="autodiff").resolved_compositor() == "jax"
