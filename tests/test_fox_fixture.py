@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
 from phirie_jax.info import outcome_lines
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.io.scene import load_scene
@@ -16,6 +15,7 @@ from phirie_jax.manifest import Manifest
 from phirie_jax.observe.box_prompt import BoxPrompt
 from phirie_jax.observe.masks import read_label_png
 from phirie_jax.pipeline import ConvertConfig, run_convert
+from tests.fixtures.cheap_convert import CHEAP_PHYSICS
 
 FOX = Path(__file__).resolve().parent / "fixtures" / "fox"
 HELD_OUT = {"0001.jpg", "0012.jpg", "0027.jpg", "0042.jpg", "0073.jpg", "0089.jpg", "0110.jpg"}
@@ -61,8 +61,7 @@ def test_box_prompt_reads_back_and_holds_the_head():
 
 
 # CoACD's search shortened: the head's collision is not what these tests are about
-QUICK = ConvertConfig(physics=PhysicsConfig(coacd=CoacdConfig(resolution=500, mcts_iterations=20, mcts_nodes=5),
-                                            max_parts=4))
+QUICK = ConvertConfig(physics=CHEAP_PHYSICS)
 
 
 def test_automatic_masks_say_why_nothing_stands_on_a_support(tmp_path):

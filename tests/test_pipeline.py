@@ -3,6 +3,7 @@ is the one docs/architecture.md describes, and the Interactive Environment loads
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import mujoco
@@ -13,7 +14,7 @@ from phirie_jax.cli import main
 from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.pipeline import STAGES
 from phirie_jax.synthetic import synthesize
-from tests.fixtures.cheap_convert import CHEAP_COACD, CHEAP_COLLISION, CHEAP_MAX_PARTS
+from tests.fixtures.cheap_convert import CHEAP_COLLISION, CHEAP_PHYSICS
 
 PLACEMENT_TOL = 0.03  # m between a placed object's origin and the true one's
 
@@ -90,7 +91,6 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
 
     from phirie_jax.construct.physics import stage
     from phirie_jax.construct.physics.collision import MeshError
-    from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
     from phirie_jax.pipeline import ConvertConfig, run_convert
 
     _, scene_dir, out = converted
@@ -106,8 +106,7 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
         return build(entry, *args)
 
     monkeypatch.setattr(stage, "build_object", build_or_fail)
-    physics = PhysicsConfig(workers=1, max_parts=CHEAP_MAX_PARTS, coacd=CoacdConfig(**CHEAP_COACD))
-    config = ConvertConfig(physics=physics)   # built in this process, where the patch holds
+    config = ConvertConfig(physics=dataclasses.replace(CHEAP_PHYSICS, workers=1))   # built in this process, where the patch holds
     manifest = run_convert(scene_dir, copy, config, stages=("physics", "background"))
     status = {o["id"]: o["status"] for o in manifest["objects"]}
     assert status[failing] == "failed"
@@ -120,7 +119,6 @@ def test_an_object_physics_fails_stays_in_the_background(converted, tmp_path, mo
 
 
 def test_a_run_moves_its_capture_once_per_frame_and_shares_it_with_the_runs_derived_from_it():
-    import dataclasses
     import types
     from pathlib import Path
 
