@@ -21,7 +21,8 @@ ends, however it ends (``kill -9`` included), so minutes of native work do not g
 interpreter (the CoACD decomposition of each object, ``construct.physics.stage``): one
 crashing call is that call's ``NativeLibraryError`` and the others go on; ``terminate`` (and
 leaving its ``with`` block on an exception: Ctrl-C) kills the running children at once and
-drops the queued calls; each child's OpenMP libraries start ``threads`` threads.
+drops the queued calls; each child's OpenMP libraries start ``threads`` threads, and its CPU
+priority may be lowered (``niceness``) so the parent's own work goes first.
 """
 
 from __future__ import annotations
@@ -43,8 +44,9 @@ from phirie_jax.errors import NativeLibraryError
 _BOOTSTRAP = ("import pickle, sys\n"
               "stream = sys.stdin.buffer\n"
               "sys.path[:0] = pickle.load(stream)\n"
-              "from phirie_jax.native import die_with_parent, serve\n"
+              "from phirie_jax.native import die_with_parent, serve, yield_cpu\n"
               "die_with_parent(int(sys.argv[2]))\n"
+              "yield_cpu(int(sys.argv[3]))\n"
               "serve(stream, int(sys.argv[1]))\n")
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -64,6 +66,14 @@ def die_with_parent(parent_pid: int) -> None:
         return  # refused (a restricted sandbox): the child can then outlive a killed parent
     if os.getppid() != parent_pid:  # the parent died before the request was made
         os._exit(1)
+
+
+def yield_cpu(niceness: int) -> None:
+    """(In a child, before it starts any thread.) Lower this process's CPU priority by
+    ``niceness`` (Unix ``nice``; 0: unchanged), so the parent's work goes first on busy cores.
+    Threads started afterwards (an OpenMP team) inherit it."""
+    if niceness > 0 and hasattr(os, "nice"):
+        os.nice(niceness)
 
 
 def serve(stream, answer_fd: int) -> None:
@@ -123,12 +133,13 @@ class _Children:
 
 
 def run_isolated(library: str, fn, *args, description: str | None = None, env: dict[str, str] | None = None,
-                 children: _Children | None = None, **kwargs):
+                 children: _Children | None = None, niceness: int = 0, **kwargs):
     """``fn(*args, **kwargs)`` in a child process; its result, or the exception it raised.
 
     library: the native library ``fn`` calls (named in the error); description: what was
     being done ("VoxelBlockGrid fusion"), also in the error; env: variables set in the child
-    besides this process's; children: where an ``IsolatedPool`` keeps the child while it runs.
+    besides this process's; children: where an ``IsolatedPool`` keeps the child while it runs;
+    niceness: how much lower the child's CPU priority is than this process's (``yield_cpu``).
     ``fn`` must be a top-level function of an importable module. Raises ``NativeLibraryError``
     when the child dies (a signal, or an exit without an answer), e.g.
     "Open3D VoxelBlockGrid fusion died with signal 11 (SIGSEGV)"; an exception that cannot
@@ -138,7 +149,7 @@ def run_isolated(library: str, fn, *args, description: str | None = None, env: d
     payload = pickle.dumps((fn, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)  # fails here, not in the child
     read_fd, write_fd = os.pipe()
     try:
-        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd), str(os.getpid())],
+        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd), str(os.getpid()), str(niceness)],
                                  stdin=subprocess.PIPE, pass_fds=(write_fd,),
                                  env=None if env is None else {**os.environ, **env})
     finally:
@@ -189,21 +200,30 @@ def _read_all(fd: int) -> bytes:
 
 class IsolatedPool:
     """``run_isolated`` calls of one native ``library``, at most ``workers`` at a time, each in a
-    fresh interpreter whose OpenMP libraries start ``threads`` threads (0: their own default).
+    fresh interpreter whose OpenMP libraries start ``threads`` threads (0: their own default), at
+    a CPU priority ``niceness`` lower than this process's (``yield_cpu``).
+
+    With ``threads`` given, the children's idle OpenMP threads sleep instead of spinning
+    (``OMP_WAIT_POLICY=PASSIVE``, unless this process's environment says otherwise): several
+    children's teams share the cores.
 
     ``submit`` returns a ``Future`` of the call's result (or its exception: a crash is a
     ``NativeLibraryError``). Used as a context manager, it waits for the calls on a normal exit
     and ``terminate``s them when the block raises (Ctrl-C's KeyboardInterrupt above all)."""
 
-    def __init__(self, library: str, workers: int, threads: int = 0):
+    def __init__(self, library: str, workers: int, threads: int = 0, niceness: int = 0):
         self.library = library
-        self.env = {"OMP_NUM_THREADS": str(threads)} if threads > 0 else None
+        self.env = None
+        if threads > 0:
+            self.env = {"OMP_NUM_THREADS": str(threads),
+                        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+        self.niceness = niceness
         self._children = _Children()
         self._threads = ThreadPoolExecutor(max(1, workers), thread_name_prefix=f"{library} call")
 
     def submit(self, fn, *args, description: str | None = None) -> Future:
         return self._threads.submit(run_isolated, self.library, fn, *args, description=description,
-                                    env=self.env, children=self._children)
+                                    env=self.env, children=self._children, niceness=self.niceness)
 
     def running_pids(self) -> list[int]:
         """Process ids of the children running a call now."""

@@ -160,9 +160,15 @@ class CoacdConfig:
             ``collision.merge_parts``; concave objects 1.1–1.8× faster) or "coacd" (CoACD's own
             merge by its sampled concavity).
         threads: OpenMP threads of each worker process (CoACD runs parts of its search in an
-            OpenMP team, one thread per core unless told): 0 = the CPU cores shared among the
-            workers (``PhysicsConfig.workers``), at least one each (with one worker per core: one
-            thread, instead of cores² threads waiting on each other).
+            OpenMP team, one thread per core unless told): 0 = twice the worker's share of the
+            CPU cores (``PhysicsConfig.workers``; ``stage.OPENMP_OVERSUBSCRIPTION``), at least
+            one. A scene's few concave objects decompose for tens of seconds after the quick ones
+            are done; with two threads each they use the cores the quick ones left (a bowl on a
+            2-core machine: 13.3-14.8 s alone on one thread, 9.0-10.0 s on two, the same parts).
+            Idle threads sleep (``native.IsolatedPool``), so while every worker is busy the
+            second thread costs little (0-8 % measured, two workers on two cores).
+        niceness: how much lower the worker processes' CPU priority is than the conversion's
+            (Unix ``nice``): the background stage runs beside them, and its host work goes first.
     """
 
     threshold: float = 0.05
@@ -175,13 +181,15 @@ class CoacdConfig:
     adaptive: AdaptiveCoacd = AdaptiveCoacd()
     merge: Merge = "volume"
     threads: int = 0
+    niceness: int = 10
 
     def __post_init__(self):
         check_ranges(self, {
             "threshold": POSITIVE_FRACTION, "preprocess": Choice.of(Preprocess),
             "preprocess_resolution": AT_LEAST_ONE, "resolution": AT_LEAST_ONE, "mcts_nodes": AT_LEAST_ONE,
             "mcts_iterations": AT_LEAST_ONE, "seed": NON_NEGATIVE, "merge": Choice.of(Merge),
-            "threads": Range(0, bound="0: the cores shared among the workers")})
+            "threads": Range(0, bound="0: twice the worker's share of the cores"),
+            "niceness": Range(0, 19)})
 
 
 @dataclasses.dataclass(frozen=True)

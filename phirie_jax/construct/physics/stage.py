@@ -196,7 +196,7 @@ def _build_outcome(entry: ObjectRecord, category: str | None, out_dir: Path, con
 def build_objects(entries: list[ObjectRecord], categories: dict, out_dir: Path, config: PhysicsConfig,
                   build=None) -> list[dict]:
     """``_build_outcome`` of every entry, at most ``config.workers`` at once, each in its own
-    fresh interpreter (``native.IsolatedPool``; CoACD is single-threaded).
+    fresh interpreter (``native.IsolatedPool``; each with its OpenMP team, ``worker_threads``).
 
     A build whose process dies (CoACD crashing in native code) is that object's recorded
     failure; the others go on. A single object, or a single core, still builds in a child
@@ -269,7 +269,7 @@ class CollisionJob:
         if config.workers != 1 and self._args:
             workers = _worker_count(len(self._args), config)
             self._threads = worker_threads(workers, config)
-            self._pool = IsolatedPool("CoACD", workers, self._threads)
+            self._pool = IsolatedPool("CoACD", workers, self._threads, config.coacd.niceness)
             futures = {}
             try:
                 for k in longest_first(entries, out_dir):
@@ -321,19 +321,24 @@ def start_collision(objects: tuple[ObjectRecord, ...], categories: dict, out_dir
 
 def pool_record(objects: int, config: PhysicsConfig) -> dict:
     """The manifest's record of how ``objects`` objects' collision was built: worker processes (0:
-    in the stage's own process) and the OpenMP threads of each."""
+    in the stage's own process), the OpenMP threads of each and how much lower their priority is."""
     if config.workers == 1 or objects == 0:
-        return {"workers": 0, "omp_threads": None}
+        return {"workers": 0, "omp_threads": None, "niceness": None}
     workers = _worker_count(objects, config)
-    return {"workers": workers, "omp_threads": worker_threads(workers, config)}
+    return {"workers": workers, "omp_threads": worker_threads(workers, config), "niceness": config.coacd.niceness}
+
+
+# Each collision worker's OpenMP team, as a multiple of its share of the cores: the concave objects
+# outlast the quick ones, and their teams then take the cores those left (``CoacdConfig.threads``).
+OPENMP_OVERSUBSCRIPTION = 2
 
 
 def worker_threads(workers: int, config: PhysicsConfig) -> int:
-    """OpenMP threads of each collision worker: ``config.coacd.threads``, or the CPU cores shared
-    among ``workers`` (at least one)."""
+    """OpenMP threads of each collision worker: ``config.coacd.threads``, or
+    ``OPENMP_OVERSUBSCRIPTION`` times the CPU cores shared among ``workers`` (at least one)."""
     import os
 
-    return config.coacd.threads or max(1, (os.cpu_count() or 1) // max(1, workers))
+    return config.coacd.threads or max(1, OPENMP_OVERSUBSCRIPTION * (os.cpu_count() or 1) // max(1, workers))
 
 
 # --- step 2: supports, scene.xml and its free settle -----------------------------------

@@ -81,21 +81,26 @@ def test_an_interrupted_parent_terminates_its_workers_at_once(tmp_path):
 
 
 def environment_build(entry, category, out_dir, config):
-    """(In a worker.) The OpenMP thread count this worker's native libraries will read."""
-    return {"update": {"omp": os.environ.get("OMP_NUM_THREADS")}}
+    """(In a worker.) The OpenMP settings this worker's native libraries will read, and its niceness."""
+    return {"update": {"omp": os.environ.get("OMP_NUM_THREADS"), "wait": os.environ.get("OMP_WAIT_POLICY"),
+                       "nice": os.nice(0)}}
 
 
-def test_each_worker_gets_its_share_of_the_cores(tmp_path):
+def test_each_worker_gets_twice_its_share_of_the_cores_at_a_lower_priority(tmp_path, monkeypatch):
     from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
-    from phirie_jax.construct.physics.stage import build_objects
+    from phirie_jax.construct.physics.stage import OPENMP_OVERSUBSCRIPTION, build_objects
     from phirie_jax.records import ObjectRecord
 
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
     entries = [ObjectRecord(id=1), ObjectRecord(id=2)]
+    ours = os.nice(0)
     shared = build_objects(entries, {}, tmp_path, PhysicsConfig(workers=2), build=environment_build)
-    assert [o["update"]["omp"] for o in shared] == [str(max(1, (os.cpu_count() or 1) // 2))] * 2
-    told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd=CoacdConfig(threads=3)),
+    threads = str(max(1, OPENMP_OVERSUBSCRIPTION * (os.cpu_count() or 1) // 2))
+    assert [o["update"] for o in shared] == [{"omp": threads, "wait": "PASSIVE", "nice": min(19, ours + 10)}] * 2
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")   # the user's own setting stays
+    told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd=CoacdConfig(threads=3, niceness=0)),
                          build=environment_build)
-    assert told[0]["update"]["omp"] == "3"
+    assert told[0]["update"] == {"omp": "3", "wait": "ACTIVE", "nice": ours}
 
 
 def identity_build(entry, category, out_dir, config):
