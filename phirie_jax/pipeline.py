@@ -5,10 +5,9 @@ its own (``phirie_jax.records``), which the run holds in one ``Manifest`` and wr
 ``OUT/manifest.json`` after each stage:
 frame (up and metres: the capture moved into a metric, +z-up world) → observe (instances)
 → objects (assets) → background (removal, inpainting targets, fill) → physics (collision,
-MJCF/URDF, drop tests). The physics stage's collision starts in CoACD's worker processes before
-the objects stage, which hands it each kept object as soon as it is built, so it is built while
-the other objects are and the background runs (which needs only the objects' meshes); the
-background runs again in the rare case that physics fails an object it removed
+MJCF/URDF, drop tests). The physics stage's collision starts in CoACD's worker processes as soon
+as the objects exist, so it is built while the background runs (which needs only the objects'
+meshes); the background runs again in the rare case that physics fails an object it removed
 (``Stage``). The cameras, in the world frame, are written beside the results
 (``transforms.json``) so the output folder is self-contained. A stage that fails is recorded
 in the manifest (``failed_stage``) and raised as a ``StageError`` (bad input stays a
@@ -175,24 +174,15 @@ def _observed(run: Run) -> None:
 
 
 def _objects(run: Run) -> Run:
-    """The objects; with the collision started before this stage (``_start_collision``), each kept
-    object is handed to it as soon as it is built."""
     from phirie_jax.construct.objects.stage import construct_objects
     from phirie_jax.construct.physics.settling import candidate_settler
 
     m = run.manifest
-    collision = run.collision
-
-    def built(record) -> None:
-        if record.kept:
-            collision.add(record)
-
     objects, record = construct_objects(m.instances(), m.up(), run.scene, run.out_dir, run.config.objects,
-                                        candidate_settler(run.config.physics), m.observed_surface(), m.timings,
-                                        on_object=None if collision is None else built)
+                                        candidate_settler(run.config.physics), m.observed_surface(), m.timings)
     m.set("objects", objects)
     m.set("construct", record)
-    return run if collision is None else dataclasses.replace(run, kept=_kept_ids(m))
+    return run
 
 
 def _physics(run: Run) -> Run:
@@ -206,23 +196,16 @@ def _physics(run: Run) -> Run:
     return run
 
 
-def _start_collision(run: Run, coming: tuple[str, ...]) -> tuple[Run, contextlib.AbstractContextManager]:
+def _start_collision(run: Run) -> tuple[Run, contextlib.AbstractContextManager]:
     """The kept objects' collision started in CoACD's worker processes (the physics stage takes its
-    outcomes); the job terminates its workers if a stage fails meanwhile. Before an objects stage
-    still ``coming``, it starts empty, and that stage hands it each kept object as soon as it is
-    built (the slowest decompositions start while the other objects are still being built);
-    otherwise with the kept objects the manifest holds. A job that cannot start is left to the
-    physics stage, which meets its error again and records it as its failure."""
+    outcomes); the job terminates its workers if a stage fails meanwhile. A job that cannot start
+    is left to the physics stage, which meets its error again and records it as its failure."""
     from phirie_jax.construct.physics.stage import start_collision
 
-    m = run.manifest
+    run = dataclasses.replace(run, kept=_kept_ids(run.manifest))
     try:
-        if "objects" in coming:
-            collision = start_collision((), m.categories(), run.out_dir, run.config.physics,
-                                        expected=len(m.instances()))
-        else:
-            run = dataclasses.replace(run, kept=_kept_ids(m))
-            collision = start_collision(m.objects(), m.categories(), run.out_dir, run.config.physics)
+        collision = start_collision(run.manifest.objects(), run.manifest.categories(), run.out_dir,
+                                    run.config.physics)
     except Exception:  # noqa: BLE001 — the physics stage meets it again and records it as its failure
         return run, contextlib.nullcontext()
     return dataclasses.replace(run, collision=collision), collision
@@ -251,7 +234,7 @@ def _run_stages(run: Run, selected: list[str], progress, created: Path | None) -
             for later in selected[k + 1:]:   # work that can start now, to run beside this stage
                 stage = STAGES[later]
                 if stage.start is not None and later not in started and not set(stage.needs) & set(selected[k:]):
-                    run, job = stage.start(run, tuple(selected[k:]))
+                    run, job = stage.start(run)
                     jobs.enter_context(job)
                     started.add(later)
             run = _run_stage(name, STAGES[name].run, run, progress, created)
@@ -302,9 +285,8 @@ class Stage:
         needs: the stages whose outputs ``start`` reads.
         start: work begun in worker processes before the stage's turn, as soon as every stage of
             ``needs`` this run runs has run and another stage runs first (it runs meanwhile);
-            called with the run and the stages still to run, the next one first; returns the run
-            (which hands the work to ``run``) and a context that ends the work when a stage fails
-            before it is taken.
+            returns the run (which hands the work to ``run``) and a context that ends the work
+            when a stage fails before it is taken.
         again: after the stage ran, the stages that ran before it to run again (what they assumed
             no longer holds).
     """
@@ -316,13 +298,12 @@ class Stage:
 
 
 # The stage table, in the order the stages run, each reading what the earlier ones wrote: the
-# physics stage's collision is built while the objects are built and the background runs.
-# ``manifest.STAGE_NAMES`` orders what each stage's output is made from (the background keeps the
-# Gaussians of an object physics fails).
+# physics stage's collision is built while the background runs. ``manifest.STAGE_NAMES`` orders
+# what each stage's output is made from (the background keeps the Gaussians of an object physics fails).
 STAGES: dict[str, Stage] = {
     "frame": Stage(_frame), "observe": Stage(_observe), "objects": Stage(_objects),
     "background": Stage(_background),
-    "physics": Stage(_physics, needs=("frame", "observe"), start=_start_collision, again=_background_again)}
+    "physics": Stage(_physics, needs=("frame", "objects"), start=_start_collision, again=_background_again)}
 
 
 # What io.scene reads cameras from, to tell a lone PLY's folder that holds them.

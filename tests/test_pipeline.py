@@ -20,35 +20,10 @@ PLACEMENT_TOL = 0.03  # m between a placed object's origin and the true one's
 
 
 @pytest.fixture(scope="module")
-def handed_over():
-    """What the collision job was handed by the objects stage, while the conversion below ran:
-    [(object id, whether the objects stage had returned)]."""
-    return []
-
-
-@pytest.fixture(scope="module")
-def converted(tmp_path_factory, handed_over):
-    import phirie_jax.construct.objects.stage as objects_stage
-    import phirie_jax.construct.physics.stage as physics_stage
-
+def converted(tmp_path_factory):
     root = tmp_path_factory.mktemp("convert")
     scene = synthesize(root / "scene", preset="tiny", seed=3)
-    returned = []
-    construct, add = objects_stage.construct_objects, physics_stage.CollisionJob.add
-
-    def construct_objects(*args, **kwargs):
-        result = construct(*args, **kwargs)
-        returned.append(True)
-        return result
-
-    def spied_add(job, entry):
-        handed_over.append((entry.id, bool(returned)))
-        add(job, entry)
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(objects_stage, "construct_objects", construct_objects)
-        patch.setattr(physics_stage.CollisionJob, "add", spied_add)
-        assert main(["convert", str(root / "scene"), "--out", str(root / "out"), *CHEAP_COLLISION]) == 0
+    assert main(["convert", str(root / "scene"), "--out", str(root / "out"), *CHEAP_COLLISION]) == 0
     return scene, root / "scene", root / "out"
 
 
@@ -68,15 +43,6 @@ def test_every_stage_writes_its_part_of_the_output_folder(converted):
     model = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
     assert {f"object_{o['id']}" for o in accepted} <= {model.body(b).name for b in range(model.nbody)}
     assert (out / "transforms.json").is_file()
-
-
-def test_each_kept_object_starts_its_collision_as_soon_as_it_is_built(converted, handed_over):
-    _, _, out = converted
-    manifest = json.loads((out / "manifest.json").read_text())
-    kept = sorted(o["id"] for o in manifest["objects"] if o["status"] in ("accepted", "unverified"))
-    assert kept and sorted(i for i, _ in handed_over) == kept   # each once, and only the kept ones
-    assert not any(after for _, after in handed_over), "an object was handed over after the objects stage"
-    assert manifest["physics"]["collision_workers"]["workers"] >= 1   # built in worker processes
 
 
 def test_background_has_the_accepted_objects_removed_and_their_footprint_filled(converted):

@@ -380,12 +380,11 @@ def _frame_and_supports(up: np.ndarray, loaded: list[_Observed], raycaster) -> t
 
 def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list[Support], scene: SceneInput,
                     config: ObjectsConfig, out_dir: Path, timings: Timings, settle: Callable | None,
-                    surface=None, on_object: Callable[[ObjectRecord], None] | None = None) -> list[dict]:
+                    surface=None) -> list[dict]:
     """``construct_object`` of every instance, ``ObjectsConfig.workers`` at once (threads: the
     numerical work releases the interpreter, each object writes only its own folder, and the
     entries come back in instance order); one object's failure is recorded, the rest go on. The
-    ``objects.<step>`` timings then sum the threads' time. ``on_object``: called with each
-    object, from the thread that built it, as soon as it is built."""
+    ``objects.<step>`` timings then sum the threads' time."""
     def one(o: _Observed, support: Support) -> dict:
         start = time.perf_counter()
         try:
@@ -395,8 +394,6 @@ def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list
             entry = {**_entry_for(o.record.id, f"{type(err).__name__}: {err}"),
                      "traceback": traceback.format_exc(limit=4)}
         entry["time_s"] = time.perf_counter() - start
-        if on_object is not None:
-            on_object(ObjectRecord.from_json(plain(entry)))
         return entry
 
     workers = min(config.workers or os.cpu_count() or 1, max(len(loaded), 1))
@@ -417,8 +414,8 @@ def _construct_record(surface_path: str | None, loaded: list[_Observed], support
 
 def construct_objects(instances: tuple[InstanceRecord, ...], up: np.ndarray, scene: SceneInput,
                       out_dir: str | Path, config: ObjectsConfig | None = None, settle: Callable | None = None,
-                      observed_surface: Path | None = None, timings: Timings | None = None,
-                      on_object: Callable[[ObjectRecord], None] | None = None) -> tuple[tuple[ObjectRecord, ...], dict]:
+                      observed_surface: Path | None = None, timings: Timings | None = None
+                      ) -> tuple[tuple[ObjectRecord, ...], dict]:
     """Construct every observed instance's object (see the module docstring) in the world of
     ``scene`` (up: (3,) its up, as the frame records it); writes the assets in ``out_dir`` and
     returns (the objects by id, the ``construct`` record).
@@ -426,8 +423,6 @@ def construct_objects(instances: tuple[InstanceRecord, ...], up: np.ndarray, sce
     ``settle``: the candidates' settling check (``construct.physics.settling.candidate_settler``,
     which the pipeline passes); None leaves that check "not run". ``observed_surface``: the
     surface observation lifted onto. ``timings``: ``objects`` and ``objects.<step>``.
-    ``on_object``: called with each object as soon as it is built, from the thread that built it
-    (the pipeline starts its collision then), before the stage ends.
     """
     out_dir = Path(out_dir)
     config = config or ObjectsConfig()
@@ -438,7 +433,7 @@ def construct_objects(instances: tuple[InstanceRecord, ...], up: np.ndarray, sce
         with timings.timed("objects.supports"):
             frame, supports = _frame_and_supports(up, loaded, raycaster)
         objects = failures + _construct_each(loaded, frame, supports, scene, config, out_dir, timings, settle,
-                                             raycaster, on_object)
+                                             raycaster)
         objects.sort(key=lambda o: o["id"])
         stale = assets.remove_stale_object_folders(out_dir, {o["id"] for o in objects if o.get("mesh")})
         record = _construct_record(surface_path, loaded, supports, config, stale)

@@ -23,7 +23,6 @@ config; timings ``physics`` and ``physics.<step>``.
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
 import traceback
 from pathlib import Path
@@ -252,58 +251,36 @@ def longest_first(entries: list[ObjectRecord], out_dir: Path) -> list[int]:
 
 
 class CollisionJob:
-    """The kept objects' collision, built in worker processes from its start on, so the caller can
-    use the accelerator meanwhile (the background stage needs only the objects' meshes);
-    ``outcomes()`` waits for it. ``entries`` start at once, the largest meshes first; ``add``
-    starts one more (from any thread: the object stage hands over each object as soon as it is
-    built, ``expected`` of them at most, which sizes the worker pool). A ``with`` block around
-    the work done meanwhile terminates the workers when that work raises. With ``workers=1`` it
-    builds in ``outcomes()``. ``build``: what runs per entry (``build_objects``)."""
+    """The accepted objects' collision, built in worker processes from ``start_collision`` on, so
+    the caller can use the accelerator meanwhile (the background stage needs only the objects'
+    meshes); ``outcomes()`` waits for it. A ``with`` block around the work done meanwhile
+    terminates the workers when that work raises. With ``workers=1`` it builds in ``outcomes()``.
+    ``build``: what runs per entry (``build_objects``)."""
 
     def __init__(self, entries: list[ObjectRecord], categories: dict, out_dir: Path, config: PhysicsConfig,
-                 build=None, expected: int | None = None):
-        self.ids: list[int] = []
+                 build=None):
+        self.ids = [e.id for e in entries]
         self._build = _build_outcome if build is None else build
-        self._categories, self._out_dir, self._config = categories, out_dir, config
-        self._args: list[tuple] = []
-        self._lock = threading.Lock()
+        self._args = [(e, categories.get(e.id), out_dir, config) for e in entries]
         self._start = time.perf_counter()
         self._finished = self._start
         self._pool = self._futures = None
         self._threads = 0
-        count = len(entries) if expected is None else max(expected, len(entries))
-        if config.workers != 1 and count:
-            workers = _worker_count(count, config)
+        if config.workers != 1 and self._args:
+            workers = _worker_count(len(self._args), config)
             self._threads = worker_threads(workers, config)
             self._pool = IsolatedPool("CoACD", workers, self._threads, config.coacd.niceness)
-            self._futures = []
-        for entry in entries:
-            self._register(entry)
-        try:
-            for k in longest_first(entries, out_dir):
-                self._submit(k)
-        except BaseException:   # Ctrl-C while submitting: no worker is left building
-            self.cancel()
-            raise
+            futures = {}
+            try:
+                for k in longest_first(entries, out_dir):
+                    a = self._args[k]
+                    futures[k] = self._pool.submit(self._build, *a, description=f"collision of object {a[0].id}")
+                    futures[k].add_done_callback(self._note_finish)
+                self._futures = [futures[k] for k in range(len(self._args))]
+            except BaseException:   # Ctrl-C while submitting: no worker is left building
+                self.cancel()
+                raise
         self.seconds = 0.0   # the collision's own wall time, once ``outcomes()`` returned
-
-    def add(self, entry: ObjectRecord) -> None:
-        """Start building ``entry``'s collision (a kept object), after those started before."""
-        with self._lock:
-            self._submit(self._register(entry))
-
-    def _register(self, entry: ObjectRecord) -> int:
-        self.ids.append(entry.id)
-        self._args.append((entry, self._categories.get(entry.id), self._out_dir, self._config))
-        if self._futures is not None:
-            self._futures.append(None)
-        return len(self._args) - 1
-
-    def _submit(self, k: int) -> None:
-        if self._pool is not None:
-            future = self._pool.submit(self._build, *self._args[k], description=f"collision of object {self.ids[k]}")
-            future.add_done_callback(self._note_finish)
-            self._futures[k] = future
 
     def _note_finish(self, _future) -> None:
         self._finished = max(self._finished, time.perf_counter())
@@ -322,7 +299,7 @@ class CollisionJob:
             self._pool = None
 
     def outcomes(self) -> list[dict]:
-        """``build`` of every entry, in the order of ``ids`` (waits for the workers)."""
+        """``build`` of every entry, in order (waits for the workers)."""
         with task("collision (CoACD per object)", len(self._args)) as advance:
             if self._futures is None:
                 outcomes = [_advanced(self._build(*a), advance) for a in self._args]
@@ -336,12 +313,10 @@ class CollisionJob:
 
 
 def start_collision(objects: tuple[ObjectRecord, ...], categories: dict, out_dir: str | Path,
-                    config: PhysicsConfig | None = None, expected: int | None = None) -> CollisionJob:
+                    config: PhysicsConfig | None = None) -> CollisionJob:
     """Start building the collision of the kept objects (``CollisionJob``; ``categories``:
-    instance id → category; ``expected``: how many kept objects it will have in all, those
-    handed over later by ``CollisionJob.add`` included)."""
-    return CollisionJob([e for e in objects if e.kept], categories, Path(out_dir), config or PhysicsConfig(),
-                        expected=expected)
+    instance id → category)."""
+    return CollisionJob([e for e in objects if e.kept], categories, Path(out_dir), config or PhysicsConfig())
 
 
 def pool_record(objects: int, config: PhysicsConfig) -> dict:
