@@ -166,7 +166,7 @@ class CoacdConfig:
             are done; with two threads each they use the cores the quick ones left (a bowl on a
             2-core machine: 13.3-14.8 s alone on one thread, 9.0-10.0 s on two, the same parts).
             Idle threads sleep (``native.IsolatedPool``), so while every worker is busy the
-            second thread costs little (0-8 % measured, two workers on two cores).
+            second thread costs little (up to 10 % measured, two workers on two cores).
         niceness: how much lower the worker processes' CPU priority is than the conversion's
             (Unix ``nice``): the background stage runs beside them, and its host work goes first.
     """
