@@ -22,7 +22,7 @@ interpreter (the CoACD decomposition of each object, ``construct.physics.stage``
 crashing call is that call's ``NativeLibraryError`` and the others go on; ``terminate`` (and
 leaving its ``with`` block on an exception: Ctrl-C) kills the running children at once and
 drops the queued calls; each child's OpenMP libraries start ``threads`` threads, and its CPU
-priority may be lowered (``niceness``) so the parent's own work goes first.
+priority may be lowered (``niceness``) so the parent's own work gets the larger share of the cores.
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from phirie_jax.errors import NativeLibraryError
 
 # The child: the parent's import path first (so the function's module imports as it does
-# here), then the call from stdin; the answer goes to the file descriptor in argv[1].
+# here), then the call from stdin; the answer goes to the file descriptor in argv[1]; argv[2] is
+# the parent's pid (``die_with_parent``), argv[3] the niceness (``yield_cpu``).
 _BOOTSTRAP = ("import pickle, sys\n"
               "stream = sys.stdin.buffer\n"
               "sys.path[:0] = pickle.load(stream)\n"
@@ -70,10 +71,14 @@ def die_with_parent(parent_pid: int) -> None:
 
 def yield_cpu(niceness: int) -> None:
     """(In a child, before it starts any thread.) Lower this process's CPU priority by
-    ``niceness`` (Unix ``nice``; 0: unchanged), so the parent's work goes first on busy cores.
-    Threads started afterwards (an OpenMP team) inherit it."""
+    ``niceness`` (Unix ``nice``, at most to 19; 0: unchanged), so the parent's work gets the larger
+    share of busy cores (at nice 10, about nine times a child's). Threads started afterwards (an
+    OpenMP team) inherit it. Where the system refuses, the child runs at the parent's priority."""
     if niceness > 0 and hasattr(os, "nice"):
-        os.nice(niceness)
+        try:
+            os.nice(niceness)
+        except OSError:
+            pass
 
 
 def serve(stream, answer_fd: int) -> None:
@@ -149,7 +154,8 @@ def run_isolated(library: str, fn, *args, description: str | None = None, env: d
     payload = pickle.dumps((fn, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)  # fails here, not in the child
     read_fd, write_fd = os.pipe()
     try:
-        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd), str(os.getpid()), str(niceness)],
+        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, str(write_fd), str(os.getpid()),
+                                  str(int(niceness))],
                                  stdin=subprocess.PIPE, pass_fds=(write_fd,),
                                  env=None if env is None else {**os.environ, **env})
     finally:

@@ -443,8 +443,11 @@ def _inputs(scene: SceneInput, masks: str | Path | None, config: ConvertConfig) 
 def conversion_inputs(scene: SceneInput, config: ConvertConfig, masks: str | Path | None,
                       stages: tuple[str, ...] | None, frame: FrameConfig, prompts: tuple = ()) -> dict:
     """The ``inputs`` record of this conversion: its input files' and options' hashes. The
-    collision's worker count decides how fast, not what, so it is left out of the options."""
-    options = {"config": dataclasses.replace(config, physics=dataclasses.replace(config.physics, workers=0)),
+    collision's worker count and the workers' priority decide how fast, not what, so they are
+    left out of the options."""
+    physics = config.physics
+    physics = dataclasses.replace(physics, workers=0, coacd=dataclasses.replace(physics.coacd, niceness=0))
+    options = {"config": dataclasses.replace(config, physics=physics),
                "frame": frame, "stages": None if stages is None else sorted(stages),
                "masks": masks if masks in (None, "auto", "files") else "folder"}
     if prompts:

@@ -121,8 +121,11 @@ def test_the_inputs_record_changes_with_what_the_conversion_reads_and_its_option
     assert record(scene) == first
     moved = Path(shutil.move(scene, tmp_path / "elsewhere"))
     assert record(moved) == first                            # names are relative to the scene folder
-    workers = ConvertConfig(physics=dataclasses.replace(ConvertConfig().physics, workers=3))
+    physics = ConvertConfig().physics
+    workers = ConvertConfig(physics=dataclasses.replace(physics, workers=3))
     assert record(moved, workers) == first                   # how fast, not what
+    lower = ConvertConfig(physics=dataclasses.replace(physics, coacd=dataclasses.replace(physics.coacd, niceness=0)))
+    assert record(moved, lower) == first                     # so is the collision workers' priority
     cheaper = ConvertConfig(background=dataclasses.replace(
         ConvertConfig().background, refine=dataclasses.replace(ConvertConfig().background.refine, iterations=0)))
     assert record(moved, cheaper)["options"] != first["options"] and record(moved, cheaper)["inputs"] == first["inputs"]

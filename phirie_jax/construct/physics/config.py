@@ -164,11 +164,14 @@ class CoacdConfig:
             CPU cores (``PhysicsConfig.workers``; ``stage.OPENMP_OVERSUBSCRIPTION``), at least
             one. A scene's few concave objects decompose for tens of seconds after the quick ones
             are done; with two threads each they use the cores the quick ones left (a bowl on a
-            2-core machine: 13.3-14.8 s alone on one thread, 9.0-10.0 s on two, the same parts).
+            2-core machine: 13.3–14.8 s alone on one thread, 9.0–10.0 s on two, the same parts).
             Idle threads sleep (``native.IsolatedPool``), so while every worker is busy the
-            second thread costs little (up to 10 % measured, two workers on two cores).
+            second thread costs little (two workers on two cores: 16.4–16.6 s against
+            15.0–16.8 s on one thread).
         niceness: how much lower the worker processes' CPU priority is than the conversion's
-            (Unix ``nice``): the background stage runs beside them, and its host work goes first.
+            (Unix ``nice``; not part of the options' hash): the background stage runs beside
+            them, and its host work gets the larger share of busy cores (about nine times a
+            worker's at 10).
     """
 
     threshold: float = 0.05

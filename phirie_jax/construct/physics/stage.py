@@ -16,7 +16,7 @@ exported scene instead), and a 2 s free settle of the whole scene is recorded.
 Manifest: each object gets ``collision``, ``mass``, ``friction``, ``physics`` (priors, mass
 properties, collision report, URDF path, body name), ``drop_test`` and its ``checks.settling``
 row; the ``physics`` section holds the scene, its USD record, background geoms, settle, the
-collision's worker processes and their OpenMP threads (``collision_workers``) and
+collision's worker processes, their OpenMP threads and niceness (``collision_workers``) and
 config; timings ``physics`` and ``physics.<step>``.
 """
 
@@ -335,10 +335,12 @@ OPENMP_OVERSUBSCRIPTION = 2
 
 def worker_threads(workers: int, config: PhysicsConfig) -> int:
     """OpenMP threads of each collision worker: ``config.coacd.threads``, or
-    ``OPENMP_OVERSUBSCRIPTION`` times the CPU cores shared among ``workers`` (at least one)."""
+    ``OPENMP_OVERSUBSCRIPTION`` times the CPU cores shared among ``workers``, at least one and at
+    most the cores (a lone worker has no cores left to take)."""
     import os
 
-    return config.coacd.threads or max(1, OPENMP_OVERSUBSCRIPTION * (os.cpu_count() or 1) // max(1, workers))
+    cores = os.cpu_count() or 1
+    return config.coacd.threads or max(1, min(cores, OPENMP_OVERSUBSCRIPTION * cores // max(1, workers)))
 
 
 # --- step 2: supports, scene.xml and its free settle -----------------------------------

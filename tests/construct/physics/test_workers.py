@@ -95,8 +95,10 @@ def test_each_worker_gets_twice_its_share_of_the_cores_at_a_lower_priority(tmp_p
     entries = [ObjectRecord(id=1), ObjectRecord(id=2)]
     ours = os.nice(0)
     shared = build_objects(entries, {}, tmp_path, PhysicsConfig(workers=2), build=environment_build)
-    threads = str(max(1, OPENMP_OVERSUBSCRIPTION * (os.cpu_count() or 1) // 2))
-    assert [o["update"] for o in shared] == [{"omp": threads, "wait": "PASSIVE", "nice": min(19, ours + 10)}] * 2
+    cores = os.cpu_count() or 1
+    threads = str(max(1, min(cores, OPENMP_OVERSUBSCRIPTION * cores // 2)))
+    lowered = min(19, ours + CoacdConfig().niceness)
+    assert [o["update"] for o in shared] == [{"omp": threads, "wait": "PASSIVE", "nice": lowered}] * 2
     monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")   # the user's own setting stays
     told = build_objects(entries[:1], {}, tmp_path, PhysicsConfig(workers=4, coacd=CoacdConfig(threads=3, niceness=0)),
                          build=environment_build)
