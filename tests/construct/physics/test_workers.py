@@ -88,7 +88,7 @@ def environment_build(entry, category, out_dir, config):
 
 def test_each_worker_gets_twice_its_share_of_the_cores_at_a_lower_priority(tmp_path, monkeypatch):
     from phirie_jax.construct.physics.config import CoacdConfig, PhysicsConfig
-    from phirie_jax.construct.physics.stage import OPENMP_OVERSUBSCRIPTION, build_objects
+    from phirie_jax.construct.physics.stage import OPENMP_OVERSUBSCRIPTION, build_objects, worker_threads
     from phirie_jax.records import ObjectRecord
 
     monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
@@ -97,6 +97,7 @@ def test_each_worker_gets_twice_its_share_of_the_cores_at_a_lower_priority(tmp_p
     shared = build_objects(entries, {}, tmp_path, PhysicsConfig(workers=2), build=environment_build)
     cores = os.cpu_count() or 1
     threads = str(max(1, min(cores, OPENMP_OVERSUBSCRIPTION * cores // 2)))
+    assert worker_threads(1, PhysicsConfig()) == cores   # a lone worker: at most the cores
     lowered = min(19, ours + CoacdConfig().niceness)
     assert [o["update"] for o in shared] == [{"omp": threads, "wait": "PASSIVE", "nice": lowered}] * 2
     monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")   # the user's own setting stays
