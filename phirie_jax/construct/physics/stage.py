@@ -265,11 +265,9 @@ class CollisionJob:
         self._start = time.perf_counter()
         self._finished = self._start
         self._pool = self._futures = None
-        self._threads = 0
         if config.workers != 1 and self._args:
             workers = _worker_count(len(self._args), config)
-            self._threads = worker_threads(workers, config)
-            self._pool = IsolatedPool("CoACD", workers, self._threads, config.coacd.niceness)
+            self._pool = IsolatedPool("CoACD", workers, worker_threads(workers, config), config.coacd.niceness)
             futures = {}
             try:
                 for k in longest_first(entries, out_dir):
