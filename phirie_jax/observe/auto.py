@@ -223,7 +223,8 @@ def _reclaim_base(points, normals, labels, on_support, up, config: AutoMaskConfi
     owned = np.flatnonzero(labels > 0)
     if len(strip) == 0 or len(owned) == 0:
         return
-    dist, nearest = cKDTree(points[owned]).query(points[strip], distance_upper_bound=config.cluster_eps)
+    dist, nearest = cKDTree(points[owned]).query(points[strip], distance_upper_bound=config.cluster_eps,
+                                                         workers=-1)
     found = np.isfinite(dist)
     labels[strip[found]] = labels[owned[nearest[found]]]
 
@@ -234,7 +235,7 @@ def label_radius(points: np.ndarray, sample_voxel: float) -> float:
     images: a pixel is wider than a voxel at the cameras' distance)."""
     if len(points) < 2:
         return 2 * sample_voxel
-    spacing, _ = cKDTree(points).query(points, k=2)
+    spacing, _ = cKDTree(points).query(points, k=2, workers=-1)
     return max(2 * sample_voxel, 2 * float(np.median(spacing[:, 1])))
 
 
@@ -252,7 +253,7 @@ def auto_masks(raycaster: Raycaster, cameras: tuple[Camera, ...], seg: AutoSegme
         hits, _, _ = raycaster.cast_camera(camera)
         labels = np.zeros(len(hits.depth), np.int64)
         hit = np.flatnonzero(hits.hit)
-        dist, nearest = tree.query(hits.points[hit], distance_upper_bound=radius)
+        dist, nearest = tree.query(hits.points[hit], distance_upper_bound=radius, workers=-1)
         found = np.isfinite(dist)
         labels[hit[found]] = sample_labels[nearest[found]]
         labels = labels.reshape(camera.height, camera.width)

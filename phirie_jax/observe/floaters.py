@@ -64,7 +64,7 @@ def floater_mask(means: np.ndarray, log_scales: np.ndarray, opacity_logits: np.n
     idx = np.flatnonzero(keep)
     if len(idx) > config.neighbours:
         points = np.asarray(means, np.float64)[idx]
-        dist, _ = cKDTree(points).query(points, k=config.neighbours + 1)  # the first is the point itself
+        dist, _ = cKDTree(points).query(points, k=config.neighbours + 1, workers=-1)  # the first is the point itself
         kth = dist[:, -1]
         limit = config.isolated_factor * np.median(kth)
         isolated[idx[kth > limit]] = True

@@ -339,7 +339,7 @@ def snap_to_centres(vertices: np.ndarray, faces: np.ndarray, centres: np.ndarray
     if len(centres) == 0 or len(vertices) == 0:
         return vertices, np.zeros(len(vertices))
     normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
-    dist, idx = cKDTree(centres).query(vertices, k=neighbours, distance_upper_bound=radius)
+    dist, idx = cKDTree(centres).query(vertices, k=neighbours, distance_upper_bound=radius, workers=-1)
     dist, idx = dist.reshape(len(vertices), -1), idx.reshape(len(vertices), -1)
     found = np.isfinite(dist)
     along = np.einsum("vkc,vc->vk", centres[np.minimum(idx, len(centres) - 1)] - vertices[:, None], normals)

@@ -118,7 +118,7 @@ def near_points(means: np.ndarray, points: np.ndarray, radius: float, index: Box
         return np.zeros(0, np.int64)
     box = np.stack([points.min(0) - radius, points.max(0) + radius])
     idx = _in_box(means, box, index)
-    d, _ = cKDTree(points).query(means[idx], distance_upper_bound=radius)
+    d, _ = cKDTree(points).query(means[idx], distance_upper_bound=radius, workers=-1)
     return idx[np.isfinite(d) & (d <= radius)]
 
 

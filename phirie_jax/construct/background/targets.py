@@ -296,7 +296,7 @@ def split_layers(data: GaussianSplatData, camera: Camera, kept_idx: np.ndarray, 
     lo, hi = float(zd.min()) - reach_z, float(zd.max()) + reach_z
     in_band = (z >= lo) & (z <= hi)
     band = kept_idx[in_band]
-    _, nn = cKDTree(disks.means.astype(np.float64)).query(data.means[band].astype(np.float64))
+    _, nn = cKDTree(disks.means.astype(np.float64)).query(data.means[band].astype(np.float64), workers=-1)
     centre, normal = disks.means[nn].astype(np.float64), normals[nn]
     h = np.sum((data.means[band] - centre) * normal, axis=1)
     side = np.sign(np.sum((camera.center - centre) * normal, axis=1))

@@ -52,10 +52,14 @@ def asset_frame(placed_gravity_vertices: np.ndarray, gravity_to_world: np.ndarra
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Wavefront OBJ (vertices and triangles only), written atomically."""
-    lines = [f"# phirie asset mesh: {len(vertices)} vertices, {len(faces)} triangles, metres, +z up\n"]
-    lines += [f"v {x:.7f} {y:.7f} {z:.7f}\n" for x, y, z in vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces]
-    write_bytes(path, "".join(lines).encode("ascii"))
+    # one formatting of all the numbers at once: the interpreter is held for a fifth of the time a
+    # line at a time takes (the objects stage's threads share it)
+    header = f"# phirie asset mesh: {len(vertices)} vertices, {len(faces)} triangles, metres, +z up\n"
+    coordinates = np.asarray(vertices, np.float64).reshape(-1).tolist()
+    corners = (np.asarray(faces, np.int64).reshape(-1) + 1).tolist()
+    text = header + ("v %.7f %.7f %.7f\n" * len(vertices)) % tuple(coordinates) \
+        + ("f %d %d %d\n" * len(faces)) % tuple(corners)
+    write_bytes(path, text.encode("ascii"))
 
 
 def transform_splats(data: GaussianSplatData, matrix: np.ndarray) -> GaussianSplatData:

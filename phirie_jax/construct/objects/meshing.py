@@ -66,8 +66,11 @@ def occupancy_mesh(occupied: np.ndarray, origin: np.ndarray, voxel: float, smoot
     add([(0, 2), (1, 3), (1, 2)], two)
     all_edges = np.concatenate(edges)
     all_tris = np.concatenate(tris)
+    # each grid edge as one integer (its two flat ids, lower first): a 1-D sort, in the order of the
+    # rows and many times faster than sorting rows, and it lets the other objects' threads run
     key = np.sort(all_edges, axis=1)
-    unique, inverse = np.unique(key, axis=0, return_inverse=True)
+    codes, inverse = np.unique(key[:, 0] * field.size + key[:, 1], return_inverse=True)
+    unique = np.stack([codes // field.size, codes % field.size], 1)
     faces = inverse.reshape(-1)[all_tris]
     fa, fb = flat_field[unique[:, 0]], flat_field[unique[:, 1]]
     t = (LEVEL - fa) / (fb - fa)
