@@ -17,6 +17,7 @@ import dataclasses
 
 import numpy as np
 
+from phirie_jax.threads import map_on_cores
 from phirie_jax.types import Camera
 
 VIEWS = 40
@@ -96,8 +97,8 @@ def plumb_lines(cameras: tuple[Camera, ...], vote: np.ndarray, rng: np.random.Ge
     from phirie_jax.frame.surface import view_indices
 
     normals, views = [], []
-    for i in view_indices(len(cameras), VIEWS):
-        segments = detect_segments(cameras[i])
+    chosen = view_indices(len(cameras), VIEWS)
+    for i, segments in zip(chosen, map_on_cores(lambda i: detect_segments(cameras[i]), chosen, "straight edges")):
         if len(segments):
             normals.append(segment_normals(cameras[i], segments))
             views.append(np.full(len(segments), i))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from phirie_jax.geometry import sigmoid
+from phirie_jax.threads import map_on_cores
 from phirie_jax.types import Camera, GaussianSplatData
 
 VIEWS = 16
@@ -68,5 +69,6 @@ def surface_points(gaussians: GaussianSplatData, cameras: tuple[Camera, ...], vi
     means = gaussians.means[keep].astype(np.float64)
     scales = np.sort(np.exp(gaussians.log_scales[keep].astype(np.float64)), axis=1)
     sigma = np.sqrt(scales[:, 1] * scales[:, 2])
-    found = [composite_surface(means, opacity[keep], sigma, cameras[i], width) for i in view_indices(len(cameras), views)]
+    found = map_on_cores(lambda i: composite_surface(means, opacity[keep], sigma, cameras[i], width),
+                         view_indices(len(cameras), views), "frame surface")
     return means[np.unique(np.concatenate(found))] if found else np.zeros((0, 3))

@@ -1,0 +1,26 @@
+"""Independent pieces of host work on every core, their results in order.
+
+For loops whose bodies spend their time in code that lets go of the interpreter (NumPy's
+sorts and arithmetic, OpenCV, SciPy): one view, one photo at a time. The results are those of
+the plain loop, in the same order; an exception in a piece is raised as the loop would raise it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def map_on_cores(fn: Callable[[T], R], items: Iterable[T], name: str = "host work") -> list[R]:
+    """``[fn(item) for item in items]``, up to a thread per core at once."""
+    items = list(items)
+    workers = min(len(items), os.cpu_count() or 1)
+    if workers <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix=name) as pool:
+        return list(pool.map(fn, items))
