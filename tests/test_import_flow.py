@@ -16,7 +16,7 @@ LAYERS = (
     ("kernels", 0),
     ("phirie_jax.errors", 1), ("phirie_jax.native", 1), ("phirie_jax.types", 1), ("phirie_jax.geometry", 1), ("phirie_jax.rotations", 1),
     ("phirie_jax.layout", 1),
-    ("phirie_jax.ranges", 1), ("phirie_jax.progress", 1), ("phirie_jax.compile_count", 1), ("phirie_jax.compile_cache", 1),
+    ("phirie_jax.ranges", 1), ("phirie_jax.progress", 1), ("phirie_jax.threads", 1), ("phirie_jax.compile_count", 1), ("phirie_jax.compile_cache", 1),
     ("phirie_jax.io", 2),
     ("phirie_jax.manifest", 3), ("phirie_jax.records", 3), ("phirie_jax.render", 3), ("phirie_jax.provenance", 3),
     ("phirie_jax.frame", 4), ("phirie_jax.synthetic", 4), ("phirie_jax.synthetic.fitted", 4), ("phirie_jax.capture", 4),

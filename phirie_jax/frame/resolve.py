@@ -11,6 +11,7 @@ records it (``SceneFrame.record``), and ``Manifest.up`` reads +z from it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -115,13 +116,20 @@ class SceneFrame:
         return scene_in_world(scene, self.capture_to_world)
 
 
-def world_gaussians(gaussians: GaussianSplatData, capture_to_world: np.ndarray) -> GaussianSplatData:
-    """The Gaussians moved by a (4, 4) Sim(3): means, orientations, sizes and SH (``kernels.gaussians``)."""
-    import jax.numpy as jnp
+@functools.cache
+def _moving_program():
+    """``kernels.gaussians.transform_gaussians`` by a (4, 4) matrix, as one compiled program (op by
+    op, its few hundred operations each compile on their own on a GPU, for seconds)."""
+    import jax
 
     from kernels.gaussians import Sim3, transform_gaussians
 
-    moved = transform_gaussians(gaussians.to_kernel(), Sim3.from_matrix(jnp.asarray(capture_to_world, jnp.float32)))
+    return jax.jit(lambda gaussians, matrix: transform_gaussians(gaussians, Sim3.from_matrix(matrix)))
+
+
+def world_gaussians(gaussians: GaussianSplatData, capture_to_world: np.ndarray) -> GaussianSplatData:
+    """The Gaussians moved by a (4, 4) Sim(3): means, orientations, sizes and SH (``kernels.gaussians``)."""
+    moved = _moving_program()(gaussians.to_kernel(), np.asarray(capture_to_world, np.float32))
     return dataclasses.replace(GaussianSplatData.from_kernel(moved, gaussians.extra),
                                layout=gaussians.layout, comments=gaussians.comments)
 
