@@ -113,3 +113,20 @@ def test_the_halo_beyond_the_shape_is_not_the_objects():
     idx = assets.captured_gaussians(scene, q, placed, means[:, 2], 0.03, 0.003, mesh_radius=0.01)
     np.testing.assert_array_equal(idx, [0, 1])
     np.testing.assert_array_equal(assets.captured_gaussians(scene, q, placed, means[:, 2], 0.03, 0.003), [0, 1, 2, 3])
+
+
+def test_obj_text_is_the_line_by_line_formatting(tmp_path):
+    """``write_obj`` formats every number at once; the bytes are those of formatting each line."""
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(0, 0.2, (50, 3))
+    vertices[0] = [-0.0, 1e-9, -5e-8]                      # signed zero and roundings to zero
+    vertices = np.vstack([vertices, vertices[:5].astype(np.float32)])  # float32 input too
+    faces = rng.integers(0, len(vertices), (70, 3)).astype(np.int32)
+    assets.write_obj(tmp_path / "mesh.obj", vertices, faces)
+    reference = [f"# phirie asset mesh: {len(vertices)} vertices, {len(faces)} triangles, metres, +z up\n"]
+    reference += [f"v {x:.7f} {y:.7f} {z:.7f}\n" for x, y, z in vertices]
+    reference += [f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces]
+    assert (tmp_path / "mesh.obj").read_text() == "".join(reference)
+    rows = [line.split() for line in (tmp_path / "mesh.obj").read_text().splitlines()[1:]]
+    np.testing.assert_allclose([[float(x) for x in r[1:]] for r in rows if r[0] == "v"], vertices, atol=5e-8)
+    np.testing.assert_array_equal([[int(x) - 1 for x in r[1:]] for r in rows if r[0] == "f"], faces)

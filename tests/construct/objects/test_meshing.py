@@ -29,6 +29,18 @@ def test_random_blobs_give_closed_outward_meshes_with_the_grid_volume(smooth):
     assert np.all(v >= lo - 1e-9) and np.all(v <= hi + 1e-9)
 
 
+def test_each_grid_edge_gives_one_vertex_shared_by_its_faces():
+    """Vertices are deduplicated by grid edge: no two coincide, and every one is used."""
+    occ = np.zeros((9, 8, 7), bool)
+    occ[2:7, 2:6, 1:5] = True
+    occ[4, 3:5, 5] = True
+    v, f = occupancy_mesh(occ, np.zeros(3), 0.5)
+    assert len(np.unique(v.round(9), axis=0)) == len(v)
+    assert np.array_equal(np.unique(f), np.arange(len(v)))
+    mesh = trimesh.Trimesh(v, f, process=False)  # closed as it is: faces share vertices by index
+    assert mesh.is_watertight and mesh.volume > 0
+
+
 def test_single_voxel_and_empty_grids():
     occ = np.zeros((3, 3, 3), bool)
     v, f = occupancy_mesh(occ, np.zeros(3), 1.0)
