@@ -98,6 +98,8 @@ def main() -> None:
     else:
         if args.capture is None or args.converted is None:
             parser.error("--capture and --converted are needed to record (or give --raw)")
+        if shutil.which("py-spy") is None:
+            parser.error("recording needs py-spy on the PATH (pip install py-spy)")
         raw = Path(tempfile.mkstemp(suffix=".txt")[1])
         timings = record(args.capture, args.converted, args.stages, args.rate, raw)
         result = {"stages": args.stages, "timings_s": timings, **summarize(parse_raw(raw.read_text()), args.rate)}
