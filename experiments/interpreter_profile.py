@@ -100,10 +100,11 @@ def main() -> None:
             parser.error("--capture and --converted are needed to record (or give --raw)")
         if shutil.which("py-spy") is None:
             parser.error("recording needs py-spy on the PATH (pip install py-spy)")
-        raw = Path(tempfile.mkstemp(suffix=".txt")[1])
-        timings = record(args.capture, args.converted, args.stages, args.rate, raw)
-        result = {"stages": args.stages, "timings_s": timings, **summarize(parse_raw(raw.read_text()), args.rate)}
-        raw.unlink()
+        with tempfile.TemporaryDirectory(prefix="interpreter_profile_raw_") as folder:
+            raw = Path(folder) / "samples.txt"
+            timings = record(args.capture, args.converted, args.stages, args.rate, raw)
+            result = {"stages": args.stages, "timings_s": timings,
+                      **summarize(parse_raw(raw.read_text()), args.rate)}
     text = json.dumps(result, indent=1)
     if args.out:
         args.out.write_text(text + "\n")

@@ -16,10 +16,10 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def map_on_cores(fn: Callable[[T], R], items: Iterable[T], name: str = "host work") -> list[R]:
-    """``[fn(item) for item in items]``, up to a thread per core at once."""
+def map_on_cores(fn: Callable[[T], R], items: Iterable[T], name: str = "host work", workers: int = 0) -> list[R]:
+    """``[fn(item) for item in items]``, up to ``workers`` threads at once (0: one per core)."""
     items = list(items)
-    workers = min(len(items), os.cpu_count() or 1)
+    workers = min(len(items), workers or os.cpu_count() or 1)
     if workers <= 1:
         return [fn(item) for item in items]
     with ThreadPoolExecutor(workers, thread_name_prefix=name) as pool:

@@ -69,6 +69,7 @@ def surface_points(gaussians: GaussianSplatData, cameras: tuple[Camera, ...], vi
     means = gaussians.means[keep].astype(np.float64)
     scales = np.sort(np.exp(gaussians.log_scales[keep].astype(np.float64)), axis=1)
     sigma = np.sqrt(scales[:, 1] * scales[:, 2])
-    found = map_on_cores(lambda i: composite_surface(means, opacity[keep], sigma, cameras[i], width),
+    opacity = opacity[keep]
+    found = map_on_cores(lambda i: composite_surface(means, opacity, sigma, cameras[i], width),
                          view_indices(len(cameras), views), "frame surface")
     return means[np.unique(np.concatenate(found))] if found else np.zeros((0, 3))

@@ -30,11 +30,9 @@ with the reason) and the rest go on.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 import traceback
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +74,7 @@ from phirie_jax.io.scene import load_scene
 from phirie_jax.manifest import ACCEPTED, FAILED_OBJECT, REJECTED, UNVERIFIED, Manifest, Timings, to_dict
 from phirie_jax.observe.support import Support, Wall, find_support
 from phirie_jax.records import InstanceRecord, ObjectRecord, plain
+from phirie_jax.threads import map_on_cores
 from phirie_jax.types import GaussianSplatData, SceneInput
 
 
@@ -385,7 +384,8 @@ def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list
     numerical work releases the interpreter, each object writes only its own folder, and the
     entries come back in instance order); one object's failure is recorded, the rest go on. The
     ``objects.<step>`` timings then sum the threads' time."""
-    def one(o: _Observed, support: Support) -> dict:
+    def one(pair: tuple[_Observed, Support]) -> dict:
+        o, support = pair
         start = time.perf_counter()
         try:
             inst = _instance_input(o.record, o.points, o.data, frame, support, scene, out_dir, surface)
@@ -396,11 +396,7 @@ def _construct_each(loaded: list[_Observed], frame: GravityFrame, supports: list
         entry["time_s"] = time.perf_counter() - start
         return entry
 
-    workers = min(config.workers or os.cpu_count() or 1, max(len(loaded), 1))
-    if workers == 1:
-        return [one(o, support) for o, support in zip(loaded, supports)]
-    with ThreadPoolExecutor(workers, thread_name_prefix="objects") as pool:
-        return list(pool.map(one, loaded, supports))
+    return map_on_cores(one, zip(loaded, supports), "objects", config.workers)
 
 
 def _construct_record(surface_path: str | None, loaded: list[_Observed], supports: list[Support],
