@@ -134,9 +134,13 @@ def main() -> None:
     from experiments.discovery_eval import user_capture
     from experiments.report import emit
     from phirie_jax.io.ply import ply_element_counts
-    from phirie_jax.synthetic.fitted import ensure_synthesized
 
-    scene = ensure_synthesized(args.scene, args.preset, args.seed)
+    # synthesized in a process of its own: JAX in this one would keep most of the GPU's memory for
+    # the whole run, and the timed conversion would get the rest
+    subprocess.run([sys.executable, "-c", ("import sys; from phirie_jax.synthetic.fitted import ensure_synthesized; "
+                    "ensure_synthesized(sys.argv[1], sys.argv[2], int(sys.argv[3]))"),
+                    str(args.scene), args.preset, str(args.seed)], check=True)
+    scene = args.scene
     out = args.work / "out"
     if args.resume:
         capture = args.work / "capture"
