@@ -39,10 +39,10 @@ def write_previews(scene_dir: Path, out_dir: Path, background, views: int = PREV
     import cv2
 
     from phirie_jax.io.scene import load_scene
-    from phirie_jax.render import render
+    from phirie_jax.render import prepared, render
 
     scene = load_scene(scene_dir)
-    gaussians = scene.require_gaussians().to_kernel()
+    gaussians = prepared(scene.require_gaussians().to_kernel())
     picks = np.linspace(0, len(scene.cameras) - 1, views).round().astype(int)
     rows = []
     for k in picks:

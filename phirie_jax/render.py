@@ -107,10 +107,10 @@ def pad_gaussians(gaussians: Gaussians, size: int) -> Gaussians:
         return gaussians
 
     def pad(x, axis, value=0.0):
-        x = jnp.asarray(x)
+        xp = np if isinstance(x, np.ndarray) else jnp  # host arrays padded on the host: no program
         shape = list(x.shape)
         shape[axis] = extra
-        return jnp.concatenate([x, jnp.full(shape, value, x.dtype)], axis=axis)
+        return xp.concatenate([x, xp.full(shape, value, x.dtype)], axis=axis)
 
     nd = gaussians.means.ndim  # 2, or 3 with a leading batch dimension
     return Gaussians(
@@ -120,6 +120,13 @@ def pad_gaussians(gaussians: Gaussians, size: int) -> Gaussians:
         opacity_logits=pad(gaussians.opacity_logits, nd - 2, PAD_OPACITY_LOGIT),
         sh=pad(gaussians.sh, nd - 2),
     )
+
+
+def prepared(gaussians: Gaussians) -> Gaussians:
+    """The set padded to its bucket (``gaussian_bucket``) and on the device, for rendering it
+    from many cameras: each render of it then moves and pads nothing. Its renders' ``radii``
+    cover the padded set (the padding's are 0)."""
+    return jax.device_put(pad_gaussians(gaussians, gaussian_bucket(gaussians.num)))
 
 
 def camera_arrays(camera: Camera, width: int | None = None, dtype=np.float32):

@@ -12,7 +12,7 @@ from kernels.gaussians import Gaussians
 from kernels.raster import RasterConfig, rasterize
 from phirie_jax import render as render_mod
 from phirie_jax.io.camera import intrinsics_matrix
-from phirie_jax.render import Renderer, gaussian_bucket, pad_gaussians, quarter_octave
+from phirie_jax.render import Renderer, gaussian_bucket, pad_gaussians, prepared, quarter_octave
 from phirie_jax.types import Camera
 from tests.conftest import shared_data
 
@@ -81,6 +81,27 @@ def test_padding_never_contributes(renderer):
     assert int(host.num_intersections) == int(direct.num_intersections)
     assert int(host.num_visible) == int(direct.num_visible)
     assert host.radii.shape == (100,)
+
+
+def test_prepared_set_renders_the_same_and_pads_on_the_host(renderer):
+    g, _ = blob_scene(0, 100)
+    host = jax.tree.map(np.asarray, g)
+    padded = pad_gaussians(host, 256)
+    assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(padded))  # no device program
+    np.testing.assert_array_equal(np.asarray(padded.means[:100]), np.asarray(g.means))
+    np.testing.assert_array_equal(np.asarray(padded.opacity_logits[100:]), render_mod.PAD_OPACITY_LOGIT)
+    np.testing.assert_array_equal(np.asarray(padded.quats[100:]), 1.0)
+    ready = prepared(host)
+    assert ready.num == gaussian_bucket(g.num)
+    assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(ready))
+    assert prepared(ready).num == ready.num  # a prepared set is its own preparation
+    cam = make_camera((0.3, -2.5, 0.8))
+    direct, again = renderer.render(g, cam), renderer.render(ready, cam)
+    for key in ("rgb", "depth", "alpha"):  # the same program on the same padded inputs
+        np.testing.assert_array_equal(np.asarray(getattr(direct, key)), np.asarray(getattr(again, key)), err_msg=key)
+    assert again.radii.shape == (256,)
+    np.testing.assert_array_equal(np.asarray(again.radii[:100]), np.asarray(direct.radii))
+    assert not np.any(np.asarray(again.radii[100:]))
 
 
 def test_overflow_retry_equals_a_big_bucket(renderer):

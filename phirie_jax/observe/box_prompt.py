@@ -147,14 +147,14 @@ def clean_labels(labels: np.ndarray, ids: Sequence[int], open_px: int, close_px:
 def box_masks(gaussians: GaussianSplatData, cameras: Sequence[Camera], boxes: Sequence[BoxPrompt],
               config: BoxMaskConfig = BoxMaskConfig()):
     """Yield (camera index, labels (H, W) uint16, or a reason string) for each camera."""
-    from phirie_jax.render import render
+    from phirie_jax.render import prepared, render
 
     if not boxes:
         raise ValueError("no box prompts given (expected at least one)")
     ids = [b.id for b in boxes]
     if len(set(ids)) != len(ids):
         raise ValueError(f"box prompt ids {ids}: expected each id once")
-    g = gaussians.to_kernel()
+    g = prepared(gaussians.to_kernel())
     for view, cam in enumerate(cameras):
         problem = camera_problem(cam)
         if problem is None:

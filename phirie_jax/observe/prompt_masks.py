@@ -68,14 +68,14 @@ def prompt_masks(gaussians: GaussianSplatData, cameras: Sequence[Camera], owner:
     the working size) of views already rendered (``PromptMasks.take``)."""
     import cv2
 
-    from phirie_jax.render import render
+    from phirie_jax.render import prepared, render
 
     done = [item for item in lifted if item.members is not None]
     if not done:
         return
     ids = [item.id for item in done]
     features = owner_features(owner, ids)
-    kernel = gaussians.to_kernel()
+    kernel = prepared(gaussians.to_kernel())
     categories = {item.id: item.prompt.label for item in done}
     for view, original in enumerate(cameras):
         labels = (rendered or {}).get(view)

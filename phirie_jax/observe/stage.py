@@ -77,9 +77,9 @@ def render_depths(scene: SceneInput, config: ObserveConfig, gaussians=None, shar
     scene's). ``shared``: another user of the same renders (prompt masks,
     ``observe.prompt_lift.PromptMasks``): its ``features`` (N, F) ride along and ``take(view,
     output)`` sees each render."""
-    from phirie_jax.render import render
+    from phirie_jax.render import prepared, render
 
-    gaussians = (gaussians if gaussians is not None else scene.require_gaussians()).to_kernel()
+    gaussians = prepared((gaussians if gaussians is not None else scene.require_gaussians()).to_kernel())
     depths, cams, failures = [], [], []
     for view in range(0, len(scene.cameras), config.surface.view_stride):
         cam = scene.cameras[view]

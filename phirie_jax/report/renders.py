@@ -139,7 +139,7 @@ def render_images(out_dir: Path, views: int, width: int, thumbnail: int, backgro
     with transparent Gaussians to the larger's count, so one compiled program of the renderer
     serves the page — the rollout's, when the views are at the cameras' own size."""
     from phirie_jax.interact.environment import Environment
-    from phirie_jax.render import pad_gaussians, render
+    from phirie_jax.render import pad_gaussians, prepared, render
 
     env = Environment.load(out_dir)
     scene: Gaussians = env.gaussians()
@@ -151,7 +151,8 @@ def render_images(out_dir: Path, views: int, width: int, thumbnail: int, backgro
     means = np.asarray(scene.means)
     if captured is not None:
         size = max(captured.num, scene.num)
-        captured, scene = pad_gaussians(captured, size), pad_gaussians(scene, size)
+        captured, scene = prepared(pad_gaussians(captured, size)), pad_gaussians(scene, size)
+    scene = prepared(scene)
     before = [None if captured is None else _rgb8(render(captured, c, background=bg).rgb) for c in picks]
     after = [_rgb8(render(scene, c, background=bg).rgb) for c in picks]
     offset = env.background.num
