@@ -12,7 +12,9 @@ completed meshes the physics stage decomposes, their poses and categories), and 
 ``fixed`` (``AdaptiveCoacd(enabled=False)`` and CoACD's own merge: threshold 0.05, 60 tree-search
 iterations, the repaired mesh of ≤ 40K triangles), ``coacd_merge`` (the settings adapted to each
 object's size and complexity, ``collision.coacd_settings``, with CoACD's own merge),
-``resolution_2000`` (the default but for CoACD's own concavity sampling, 2000) and ``adaptive``
+``resolution_2000`` (the default but for CoACD's own concavity sampling, 2000), ``concave_0.1`` /
+``concave_0.13`` (the default but for the concave objects' threshold floor,
+``AdaptiveCoacd.concave_threshold``, by default the base threshold 0.05) and ``adaptive``
 (the default ``PhysicsConfig``: adapted settings, ``collision.merge_parts``). Each
 object is built in a worker process with one OpenMP thread (as the physics stage's workers run
 with one worker per core), so its CPU seconds are its time on one core. The guard: for every
@@ -38,7 +40,7 @@ import numpy as np
 from experiments.report import emit
 
 RATIO_BOUND = 0.1   # |profile − baseline| hull-volume ratio, per object
-PROFILES = ("fixed", "coacd_merge", "resolution_2000", "adaptive")
+PROFILES = ("fixed", "coacd_merge", "resolution_2000", "concave_0.1", "concave_0.13", "adaptive")
 
 
 def profile_config(name: str):
@@ -47,6 +49,8 @@ def profile_config(name: str):
     adaptive = AdaptiveCoacd(enabled=name != "fixed")
     if name == "resolution_2000":
         adaptive = AdaptiveCoacd(resolution=CoacdConfig.resolution)
+    if name.startswith("concave_"):
+        adaptive = AdaptiveCoacd(concave_threshold=float(name.partition("_")[2]))
     merge = "coacd" if name in ("fixed", "coacd_merge") else "volume"
     return PhysicsConfig(coacd=CoacdConfig(adaptive=adaptive, merge=merge), drop_test=DropTestConfig(backend="mujoco"))
 
@@ -172,7 +176,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="worker processes (one OpenMP thread each)")
     parser.add_argument("--profiles", nargs="+", default=["fixed", "adaptive"], choices=PROFILES,
                         help="fixed: CoACD's settings and merge; coacd_merge: the adaptive settings with CoACD's "
-                             "merge; resolution_2000: the default at CoACD's sampling resolution; adaptive: the "
+                             "merge; resolution_2000: the default at CoACD's sampling resolution; concave_T: the "
+                             "default with the concave objects' threshold floor T; adaptive: the "
                              "default (adaptive settings, collision.merge_parts)")
     parser.add_argument("--baseline", choices=PROFILES, default="fixed", help="what the guard compares against")
     parser.add_argument("--out", type=Path, default=None)

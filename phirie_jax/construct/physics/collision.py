@@ -131,17 +131,24 @@ def _simplify(mesh, max_triangles: int):
     return _trimesh(np.asarray(o3.vertices), np.asarray(o3.triangles))
 
 
+def edge_keys(edges: np.ndarray, count: int) -> np.ndarray:
+    """(E,) int64 key of each (E, 2) vertex pair of a mesh of ``count`` vertices: equal pairs,
+    equal keys, in the pairs' lexicographic order (a 1-D ``np.unique`` instead of rows)."""
+    return edges[:, 0].astype(np.int64) * max(int(count), 1) + edges[:, 1]
+
+
 def orient_faces(faces: np.ndarray) -> np.ndarray:
     """Flip triangles so that every edge shared by two of them is traversed in opposite directions
     (breadth-first over edge neighbours, per connected piece; manifold input). A mesh whose
     triangles already agree (no directed edge twice: a marching-cubes visual hull) is returned as
     it is, without the walk: the walk would flip nothing."""
     faces = np.asarray(faces, np.int64).copy()
+    count = int(faces.max()) + 1 if len(faces) else 0
     directed_edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    if len(np.unique(directed_edges, axis=0)) == len(directed_edges):
+    if len(np.unique(edge_keys(directed_edges, count))) == len(directed_edges):
         return faces
     edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
-    _, edge_id = np.unique(edges, axis=0, return_inverse=True)
+    _, edge_id = np.unique(edge_keys(edges, count), return_inverse=True)
     edge_id = edge_id.reshape(-1)
     order = np.argsort(edge_id, kind="stable")
     pairs = order.reshape(-1) // 3
@@ -219,7 +226,7 @@ def repair_mesh(vertices: np.ndarray, faces: np.ndarray, config: PhysicsConfig =
     mesh.remove_unreferenced_vertices()
     if len(mesh.faces) == 0:
         raise MeshError("empty mesh: every triangle is degenerate")
-    _, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    _, counts = np.unique(edge_keys(mesh.edges_sorted, len(mesh.vertices)), return_counts=True)
     shared = int((counts > 2).sum())
     if shared:
         raise MeshError(f"non-manifold mesh: {shared} edges are shared by more than two triangles")
@@ -322,8 +329,9 @@ class CoacdSettings:
 
 def coacd_settings(mesh: RepairedMesh, config: PhysicsConfig = PhysicsConfig()) -> CoacdSettings:
     """CoACD's settings for ``mesh`` (``AdaptiveCoacd``): its threshold raised for a small object (an
-    absolute tolerance) and for a nearly convex one, fewer tree-search iterations, a simplified
-    input, a coarser concavity sampling; the fixed ``CoacdConfig`` settings when adaptation is off."""
+    absolute tolerance) and to its tier's floor (nearly convex or concave), fewer tree-search
+    iterations, a simplified input, a coarser concavity sampling; the fixed ``CoacdConfig`` settings
+    when adaptation is off."""
     coacd = config.coacd
     adaptive = coacd.adaptive
     hull = _hull_volume(mesh.vertices)
@@ -333,8 +341,7 @@ def coacd_settings(mesh: RepairedMesh, config: PhysicsConfig = PhysicsConfig()) 
         return CoacdSettings(coacd.threshold, coacd.mcts_iterations, coacd.resolution, 0, "fixed", solidity, extent)
     threshold = max(coacd.threshold, min(1.0, 2 * adaptive.tolerance / max(extent, 1e-9)))
     convex = mesh.watertight and solidity >= adaptive.convex_solidity
-    if convex:
-        threshold = max(threshold, adaptive.convex_threshold)
+    threshold = max(threshold, adaptive.convex_threshold if convex else adaptive.concave_threshold)
     return CoacdSettings(threshold, adaptive.mcts_iterations, adaptive.resolution, adaptive.max_triangles,
                          "nearly convex" if convex else "concave", solidity, extent)
 
