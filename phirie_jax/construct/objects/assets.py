@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from phirie_jax.io.atomic import write_bytes
+from phirie_jax.io.mesh import ASSET_OBJ_HEADER
 from phirie_jax.io.ply import read_gaussian_ply, write_gaussian_ply
 from phirie_jax.types import GaussianSplatData
 
@@ -54,7 +55,7 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Wavefront OBJ (vertices and triangles only), written atomically."""
     # one formatting of all the numbers at once: the interpreter is held for a fifth of the time a
     # line at a time takes (the objects stage's threads share it)
-    header = f"# phirie asset mesh: {len(vertices)} vertices, {len(faces)} triangles, metres, +z up\n"
+    header = ASSET_OBJ_HEADER.format(vertices=len(vertices), triangles=len(faces))
     coordinates = np.asarray(vertices, np.float64).reshape(-1).tolist()
     corners = (np.asarray(faces, np.int64).reshape(-1) + 1).tolist()
     text = header + ("v %.7f %.7f %.7f\n" * len(vertices)) % tuple(coordinates) \
