@@ -83,15 +83,30 @@ def _min_area_rectangle(xy: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return best[1], best[2], best[3]
 
 
-def _support_samples(surface, rot: np.ndarray, height: float) -> np.ndarray:
+@dataclasses.dataclass(frozen=True)
+class UpFacing:
+    """The scene surface's up-facing triangles (within ``UP_FACING_DEG`` of up) in the gravity
+    frame: found once for the whole fit (a splat surface has millions of triangles)."""
+
+    triangles: np.ndarray     # (F, 3, 3) corners, gravity frame
+    areas: np.ndarray         # (F,) m²
+
+    @classmethod
+    def of(cls, surface, rot: np.ndarray) -> UpFacing:
+        """``surface``: a trimesh in the scene frame; ``rot`` (3, 3): scene → gravity."""
+        tri = (np.asarray(surface.vertices, np.float64) @ rot.T)[np.asarray(surface.faces)]   # (F, 3, 3)
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        double_area = np.linalg.norm(normal, axis=1)
+        up = np.flatnonzero(normal[:, 2] >= np.cos(np.radians(UP_FACING_DEG)) * np.maximum(double_area, 1e-30))
+        return cls(tri[up], 0.5 * double_area[up])
+
+
+def _support_samples(up_facing: UpFacing, height: float) -> np.ndarray:
     """(K, 2) points on the up-facing surface within ``BAND`` of ``height`` (gravity frame), about
     four per cell: big triangles (a scan's tabletop can be two) are sampled, not just their centres."""
-    tri = surface.triangles @ rot.T                                    # (F, 3, 3)
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = 0.5 * np.linalg.norm(normal, axis=1)
-    up_facing = normal[:, 2] >= np.cos(np.radians(UP_FACING_DEG)) * 2 * np.maximum(area, 1e-30)
+    tri, area = up_facing.triangles, up_facing.areas
     near = (tri[:, :, 2].min(1) <= height + BAND) & (tri[:, :, 2].max(1) >= height - BAND)
-    faces = np.flatnonzero(up_facing & near)
+    faces = np.flatnonzero(near)
     if not len(faces):
         return np.zeros((0, 2))
     counts = np.maximum(1, np.ceil(area[faces] / (0.25 * CELL**2)).astype(int))
@@ -105,11 +120,11 @@ def _support_samples(surface, rot: np.ndarray, height: float) -> np.ndarray:
     return points[np.abs(points[:, 2] - height) <= BAND, :2]
 
 
-def _surface_footprint(surface, rot: np.ndarray, height: float, seeds: np.ndarray) -> np.ndarray | None:
+def _surface_footprint(up_facing: UpFacing, height: float, seeds: np.ndarray) -> np.ndarray | None:
     """(K, 2) cell centres of the up-facing surface region near ``height`` around the seeds."""
     from scipy import ndimage
 
-    xy = _support_samples(surface, rot, height)
+    xy = _support_samples(up_facing, height)
     if len(xy) < 3:
         return None
     lo = np.minimum(xy.min(0), seeds.min(0)) - 2 * CELL
@@ -128,14 +143,12 @@ def _surface_footprint(surface, rot: np.ndarray, height: float, seeds: np.ndarra
     return lo + (cells + 0.5) * CELL
 
 
-def _surface_floor(surface, rot: np.ndarray) -> float | None:
+def _surface_floor(up_facing: UpFacing) -> float | None:
     """Lowest height of up-facing surface with at least ``FLOOR_MIN_AREA`` in one 1 cm bin."""
-    normals = surface.face_normals @ rot.T
-    up_facing = normals[:, 2] >= np.cos(np.radians(UP_FACING_DEG))
-    if not up_facing.any():
+    if not len(up_facing.areas):
         return None
-    z = (surface.triangles_center @ rot.T)[up_facing, 2]
-    area = surface.area_faces[up_facing]
+    z = up_facing.triangles[:, :, 2].mean(1)                     # the triangles' centres' heights
+    area = up_facing.areas
     edges = np.arange(z.min(), z.max() + 0.02, 0.01)
     counts, edges = np.histogram(z, bins=edges, weights=area)
     big = np.flatnonzero(counts >= FLOOR_MIN_AREA)
@@ -156,7 +169,8 @@ def fit_background(bodies: list[PlacedBody], up, surface=None, thickness: float 
     grav = [b.points @ rot.T for b in bodies]
     heights = [b.support if b.support is not None else float(g[:, 2].min()) for b, g in zip(bodies, grav)]
     groups = _groups(heights)
-    floor = _surface_floor(surface, rot) if (surface is not None and mode == "supports") else None
+    up_facing = UpFacing.of(surface, rot) if (surface is not None and mode == "supports") else None
+    floor = _surface_floor(up_facing) if up_facing is not None else None
     if floor is not None and floor < min(heights) - HEIGHT_MERGE:
         source = "scene surface (lowest up-facing region)"
     else:
@@ -171,7 +185,7 @@ def fit_background(bodies: list[PlacedBody], up, surface=None, thickness: float 
     for k, group in enumerate(groups):
         height = float(np.median([heights[i] for i in group]))
         seeds = np.concatenate([grav[i][:, :2] for i in group])
-        footprint = _surface_footprint(surface, rot, height, seeds) if surface is not None else None
+        footprint = _surface_footprint(up_facing, height, seeds) if up_facing is not None else None
         if footprint is not None and len(footprint) >= 3:
             xy, source = np.concatenate([footprint, seeds]), "scene surface"
             margin = 0.5 * CELL

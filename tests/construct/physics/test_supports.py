@@ -53,3 +53,19 @@ def test_without_a_surface_the_box_covers_the_footprints_and_plane_mode_is_one_p
         assert np.all(np.abs(local[:, :2]) <= box.size[:2] - FALLBACK_MARGIN + 1e-9)
     only = fit_background(bodies, (0, 0, 1), None, mode="plane")
     assert [g.type for g in only] == ["plane"] and only[0].pos[2] == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("rotvec", [(0.0, 0.0, 0.0), (0.5, -0.3, 1.0)])
+def test_up_facing_triangles_are_the_tops_in_the_gravity_frame(rotvec):
+    from phirie_jax.construct.physics.supports import UP_FACING_DEG, UpFacing
+
+    rot = Rotation.from_rotvec(rotvec).as_matrix()
+    surface, _ = scene(rot)
+    up = UpFacing.of(surface, rot.T)                           # scene → gravity undoes the tilt
+    # the slow reference: trimesh's unit face normals, taken back to the gravity frame
+    normals = surface.face_normals @ rot
+    wanted = np.flatnonzero(normals[:, 2] >= np.cos(np.radians(UP_FACING_DEG)))
+    np.testing.assert_allclose(up.triangles, surface.triangles[wanted] @ rot, atol=1e-12)
+    np.testing.assert_allclose(up.areas, surface.area_faces[wanted], rtol=1e-9)
+    assert up.areas.sum() == pytest.approx(3.0 * 3.0 + TABLE[0] * TABLE[1])   # the floor's and the table's tops
+    np.testing.assert_allclose(np.sort(np.unique(up.triangles[:, :, 2].round(9))), [0.0, TABLE[2]], atol=1e-9)
