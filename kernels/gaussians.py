@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from kernels.pytree import pytree_dataclass
 from kernels.sh import rotate_sh_bands, sh_band_rotations, sh_degree_from_coeffs
@@ -232,5 +233,10 @@ def _moved(gaussians: Gaussians, transform: Sim3, body) -> Gaussians:
 
 
 def concatenate(parts: list[Gaussians]) -> Gaussians:
-    """One set holding every Gaussian of ``parts`` (same SH degree), in order."""
-    return jax.tree.map(lambda *leaves: jnp.concatenate(leaves, axis=0), *parts)
+    """One set holding every Gaussian of ``parts`` (same SH degree), in order: NumPy arrays when
+    every part's are (joined on the host, no program), else JAX arrays."""
+    def join(*leaves):
+        xp = np if all(isinstance(leaf, np.ndarray) for leaf in leaves) else jnp
+        return xp.concatenate(leaves, axis=0)
+
+    return jax.tree.map(join, *parts)

@@ -84,6 +84,14 @@ class GaussianSplatData:
         """(2, 3) axis-aligned min and max of the means."""
         return np.stack([self.means.min(0), self.means.max(0)]) if self.num else np.zeros((2, 3))
 
+    def to_host_kernel(self):
+        """The same set as a ``kernels.gaussians.Gaussians`` of NumPy float32 arrays: for sets
+        assembled on the host before one move to the device (``jax.device_put``)."""
+        from kernels.gaussians import Gaussians
+
+        return Gaussians(*(np.asarray(x, np.float32) for x in
+                           (self.means, self.quats, self.log_scales, self.opacity_logits, self.sh)))
+
     def to_kernel(self, dtype=None):
         """The same set as a ``kernels.gaussians.Gaussians`` of JAX arrays (float32 by default)."""
         import jax.numpy as jnp

@@ -123,7 +123,7 @@ class Environment:
                                       "missing (expected one free body per accepted object)")
             self.objects.append(SceneObject(object_id, name, body_id, np.asarray(pose0, np.float64),
                                             slice(start, start + splats.num)))
-            parts.append(splats.to_kernel())
+            parts.append(splats.to_host_kernel())
             body.append(np.full(splats.num, index, np.int32))
             start += splats.num
         if robot is not None:
@@ -136,13 +136,12 @@ class Environment:
                 body.append(np.full(splats.num, len(self.objects), np.int32))
                 self.objects.append(SceneObject(None, model.body(body_id).name, body_id, pose0,
                                                 slice(start, start + splats.num)))
-                parts.append(splats.to_kernel())
+                parts.append(splats.to_host_kernel())
                 start += splats.num
         self.background = background.to_kernel()
-        empty = Gaussians(*(jnp.zeros((0,) + x.shape[1:], x.dtype) for x in
-                            (self.background.means, self.background.quats, self.background.log_scales,
-                             self.background.opacity_logits, self.background.sh)))
-        self.object_gaussians = concatenate(parts) if parts else empty
+        if not parts:   # an empty set of the background's layout
+            parts = [jax.tree.map(lambda x: np.zeros((0,) + x.shape[1:], np.float32), self.background)]
+        self.object_gaussians = jax.device_put(concatenate(parts))   # joined on the host, moved once
         self.body_index = jnp.asarray(np.concatenate(body) if body else np.zeros(0, np.int32))
         self.reset()
 

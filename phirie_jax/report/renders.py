@@ -138,16 +138,18 @@ def render_images(out_dir: Path, views: int, width: int, thumbnail: int, backgro
     of that size, its centred square cut out afterwards) and the smaller Gaussian set is padded
     with transparent Gaussians to the larger's count, so one compiled program of the renderer
     serves the page — the rollout's, when the views are at the cameras' own size."""
+    import jax
+
     from phirie_jax.interact.environment import Environment
     from phirie_jax.render import pad_gaussians, prepared, render
 
     env = Environment.load(out_dir)
-    scene: Gaussians = env.gaussians()
+    scene: Gaussians = jax.tree.map(np.asarray, env.gaussians())   # padded on the host: no program per shape
     picks = [env.cameras[k] for k in view_cameras(env.cameras, views)]
     picks = [c if c.width <= width else c.scaled(width / c.width) for c in picks]
     bg = np.asarray(background, np.float32)
     source = source if source is not None else source_gaussians(out_dir)
-    captured = None if source is None else source.to_kernel()
+    captured = None if source is None else source.to_host_kernel()
     means = np.asarray(scene.means)
     if captured is not None:
         size = max(captured.num, scene.num)

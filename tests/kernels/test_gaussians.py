@@ -209,3 +209,14 @@ def test_per_body_transforms_match_one_transform_per_set(x64):
     np.testing.assert_array_equal(transform_bodies(flat, transforms, body).sh, flat.sh)
     both = concatenate([g, g])
     assert both.num == 24 and both.sh.shape == (24, 16, 3)
+
+
+def test_concatenate_joins_host_sets_on_the_host_and_device_sets_on_the_device():
+    parts = [random_gaussians(seed, n=n, degree=1, dtype=jnp.float32) for seed, n in ((0, 5), (1, 7))]
+    on_device = concatenate(parts)
+    on_host = concatenate([jax.tree.map(np.asarray, g) for g in parts])
+    assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(on_host))
+    assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(on_device))
+    assert on_host.num == on_device.num == 12
+    for a, b in zip(jax.tree.leaves(on_host), jax.tree.leaves(on_device)):
+        np.testing.assert_array_equal(a, np.asarray(b))
