@@ -42,7 +42,7 @@ def write_previews(scene_dir: Path, out_dir: Path, background, views: int = PREV
     from phirie_jax.render import prepared, render
 
     scene = load_scene(scene_dir)
-    gaussians = prepared(scene.require_gaussians().to_kernel())
+    gaussians = prepared(scene.require_gaussians().to_host_kernel())
     picks = np.linspace(0, len(scene.cameras) - 1, views).round().astype(int)
     rows = []
     for k in picks:

@@ -142,16 +142,18 @@ def camera_arrays(camera: Camera, width: int | None = None, dtype=np.float32):
             int(camera.width), int(camera.height))
 
 
-def _pad_features(features, n, bucket, dtype):
-    """(..., N, F) → (..., bucket, F) with zeros; None → (bucket, 0). Always an array, so
-    renders with and without features of one bucket share the program's signature."""
+def _pad_features(features, bucket, dtype):
+    """(..., N, F) → (..., bucket, F) with zeros (N ≤ bucket: a prepared set's features may be
+    fewer than its Gaussians); None → (bucket, 0). Always an array, so renders with and without
+    features of one bucket share the program's signature. Host features are padded on the host."""
     if features is None:
         return jnp.zeros((bucket, 0), dtype)
-    features = jnp.asarray(features, dtype)
-    if features.shape[-2] == bucket:  # already the bucket's size: nothing to append
-        return features
-    pad_shape = features.shape[:-2] + (bucket - n, features.shape[-1])
-    return jnp.concatenate([features, jnp.zeros(pad_shape, dtype)], axis=-2)
+    xp = np if isinstance(features, np.ndarray) else jnp
+    features = xp.asarray(features, dtype)
+    if features.shape[-2] != bucket:
+        pad_shape = features.shape[:-2] + (bucket - features.shape[-2], features.shape[-1])
+        features = xp.concatenate([features, xp.zeros(pad_shape, dtype)], axis=-2)
+    return jnp.asarray(features)
 
 
 def _background(background, dtype):
@@ -213,7 +215,7 @@ class Renderer:
         dtype = jnp.asarray(gaussians.means).dtype
         K, w2c, w, h = camera_arrays(camera, width, dtype)
         padded = pad_gaussians(gaussians, bucket)
-        features = _pad_features(features, n, bucket, dtype)
+        features = _pad_features(features, bucket, dtype)
         bg = _background(background, dtype)
         key = ("render", bucket, w, h, features.shape[-1])
         out, config = self._run(key, lambda cfg: _render_jit(padded, K, w2c, bg, features,
@@ -243,7 +245,7 @@ class Renderer:
         Ks = jnp.asarray(np.stack([a[0] for a in arrays]))
         w2cs = jnp.asarray(np.stack([a[1] for a in arrays]))
         padded = pad_gaussians(gaussians, bucket)
-        features = _pad_features(features, n, bucket, dtype)
+        features = _pad_features(features, bucket, dtype)
         bg = _background(background, dtype)
         key = ("batch", bucket, w, h, len(cameras), gaussians.means.ndim, features.shape,
                bg.shape)

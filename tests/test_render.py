@@ -84,7 +84,7 @@ def test_padding_never_contributes(renderer):
 
 
 def test_prepared_set_renders_the_same_and_pads_on_the_host(renderer):
-    g, _ = blob_scene(0, 100)
+    g, feats = blob_scene(0, 100)
     host = jax.tree.map(np.asarray, g)
     padded = pad_gaussians(host, 256)
     assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(padded))  # no device program
@@ -102,6 +102,9 @@ def test_prepared_set_renders_the_same_and_pads_on_the_host(renderer):
     assert again.radii.shape == (256,)
     np.testing.assert_array_equal(np.asarray(again.radii[:100]), np.asarray(direct.radii))
     assert not np.any(np.asarray(again.radii[100:]))
+    # features of the Gaussians before padding ride along with the prepared set (host or device)
+    direct, again = renderer.render(g, cam, features=feats), renderer.render(ready, cam, features=jnp.asarray(feats))
+    np.testing.assert_array_equal(np.asarray(direct.features), np.asarray(again.features))
 
 
 def test_overflow_retry_equals_a_big_bucket(renderer):

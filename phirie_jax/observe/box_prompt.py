@@ -154,7 +154,7 @@ def box_masks(gaussians: GaussianSplatData, cameras: Sequence[Camera], boxes: Se
     ids = [b.id for b in boxes]
     if len(set(ids)) != len(ids):
         raise ValueError(f"box prompt ids {ids}: expected each id once")
-    g = prepared(gaussians.to_kernel())
+    g = prepared(gaussians.to_host_kernel())
     for view, cam in enumerate(cameras):
         problem = camera_problem(cam)
         if problem is None:

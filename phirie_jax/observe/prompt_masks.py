@@ -75,7 +75,7 @@ def prompt_masks(gaussians: GaussianSplatData, cameras: Sequence[Camera], owner:
         return
     ids = [item.id for item in done]
     features = owner_features(owner, ids)
-    kernel = prepared(gaussians.to_kernel())
+    kernel = prepared(gaussians.to_host_kernel())
     categories = {item.id: item.prompt.label for item in done}
     for view, original in enumerate(cameras):
         labels = (rendered or {}).get(view)

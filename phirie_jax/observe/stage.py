@@ -79,7 +79,7 @@ def render_depths(scene: SceneInput, config: ObserveConfig, gaussians=None, shar
     output)`` sees each render."""
     from phirie_jax.render import prepared, render
 
-    gaussians = prepared((gaussians if gaussians is not None else scene.require_gaussians()).to_kernel())
+    gaussians = prepared((gaussians if gaussians is not None else scene.require_gaussians()).to_host_kernel())
     depths, cams, failures = [], [], []
     for view in range(0, len(scene.cameras), config.surface.view_stride):
         cam = scene.cameras[view]
