@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from phirie_jax.geometry import logit, rotation_to_z, sigmoid, sim3_matrix, split_sim3
+from phirie_jax.geometry import edge_keys, logit, rotation_to_z, sigmoid, sim3_matrix, split_sim3
 
 ROTATION_TOLERANCE = 1e-10
 
@@ -43,3 +43,12 @@ def test_sigmoid_and_logit_are_inverse_and_do_not_overflow():
     assert np.allclose(sigmoid(logit(p)), p)
     with np.errstate(over="raise", invalid="raise", divide="raise"):
         assert np.allclose(sigmoid(np.array([-1e4, 0.0, 1e4])), [0.0, 0.5, 1.0])
+
+
+def test_edge_keys_order_and_group_pairs_as_rows_do():
+    pairs = np.random.default_rng(3).integers(0, 50, (400, 2))
+    rows, row_inverse, row_counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
+    keys, key_inverse, key_counts = np.unique(edge_keys(pairs, 50), return_inverse=True, return_counts=True)
+    assert len(keys) == len(rows)
+    np.testing.assert_array_equal(key_inverse.reshape(-1), row_inverse.reshape(-1))
+    np.testing.assert_array_equal(key_counts, row_counts)

@@ -15,6 +15,8 @@ import itertools
 import numpy as np
 from scipy import ndimage
 
+from phirie_jax.geometry import edge_keys
+
 LEVEL = 0.5
 _CORNERS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
 # Kuhn split: corner 0 → +e_a → +e_b → corner 7 for each permutation (a, b, c) of the axes
@@ -67,9 +69,8 @@ def occupancy_mesh(occupied: np.ndarray, origin: np.ndarray, voxel: float, smoot
     all_edges = np.concatenate(edges)
     all_tris = np.concatenate(tris)
     # each grid edge as one integer (its two flat ids, lower first): a 1-D sort, in the order of the
-    # rows and many times faster than sorting rows, and it lets the other objects' threads run
-    key = np.sort(all_edges, axis=1)
-    codes, inverse = np.unique(key[:, 0] * field.size + key[:, 1], return_inverse=True)
+    # rows, that lets the other objects' threads run
+    codes, inverse = np.unique(edge_keys(np.sort(all_edges, axis=1), field.size), return_inverse=True)
     unique = np.stack([codes // field.size, codes % field.size], 1)
     faces = inverse.reshape(-1)[all_tris]
     fa, fb = flat_field[unique[:, 0]], flat_field[unique[:, 1]]

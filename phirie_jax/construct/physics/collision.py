@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from phirie_jax.construct.physics.config import PhysicsConfig
+from phirie_jax.geometry import edge_keys
 
 GHOST_SHRINK = 0.05   # a ghost part is its body's first part shrunk this much around its centroid
 
@@ -129,12 +130,6 @@ def _simplify(mesh, max_triangles: int):
     o3.remove_degenerate_triangles()
     o3.remove_unreferenced_vertices()
     return _trimesh(np.asarray(o3.vertices), np.asarray(o3.triangles))
-
-
-def edge_keys(edges: np.ndarray, count: int) -> np.ndarray:
-    """(E,) int64 key of each (E, 2) vertex pair of a mesh of ``count`` vertices: equal pairs,
-    equal keys, in the pairs' lexicographic order (a 1-D ``np.unique`` instead of rows)."""
-    return edges[:, 0].astype(np.int64) * max(int(count), 1) + edges[:, 1]
 
 
 def orient_faces(faces: np.ndarray) -> np.ndarray:

@@ -142,17 +142,6 @@ def test_orientation_fixes_flipped_triangles_and_leaves_consistent_ones_alone():
     assert same.all() or (~same).all()                                    # the sphere's winding, or all reversed
 
 
-def test_edge_keys_order_and_group_pairs_as_rows_do():
-    from phirie_jax.construct.physics.collision import edge_keys
-
-    pairs = np.random.default_rng(3).integers(0, 50, (400, 2))
-    rows, row_inverse, row_counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
-    keys, key_inverse, key_counts = np.unique(edge_keys(pairs, 50), return_inverse=True, return_counts=True)
-    assert len(keys) == len(rows)
-    np.testing.assert_array_equal(key_inverse.reshape(-1), row_inverse.reshape(-1))
-    np.testing.assert_array_equal(key_counts, row_counts)
-
-
 def test_coacd_settings_follow_the_objects_size_and_complexity():
     from phirie_jax.construct.physics.collision import coacd_settings
     from phirie_jax.construct.physics.config import AdaptiveCoacd
