@@ -237,3 +237,35 @@ def test_bench_env_reads_compositor_settings_and_refuses_others():
     for bad in ("8", "8:x", "8:4:ahead", "8:4:prefetch:1", "-8:4"):
         with pytest.raises(argparse.ArgumentTypeError, match="expected CHUNK:WARPS or CHUNK:WARPS:prefetch"):
             compositor_setting(bad)
+
+
+def test_asset_mesh_benchmark_compares_the_same_arrays_and_edges(tmp_path, monkeypatch):
+    """Both readers see the same numbers and both edge counts the same edges on a real asset OBJ (a
+    closed box); an OBJ without the asset header is left to trimesh; a reader off by a rounding is
+    caught."""
+    import numpy as np
+    import trimesh
+
+    import phirie_jax.io.mesh
+    from experiments.bench_asset_meshes import bench
+    from phirie_jax.construct.objects.assets import write_obj
+
+    box = trimesh.creation.box(extents=(0.1, 0.2, 0.3))
+    write_obj(tmp_path / "objects" / "1" / "mesh.obj", box.vertices, box.faces)
+    other = tmp_path / "objects" / "2" / "mesh.obj"
+    other.parent.mkdir()
+    other.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in box.vertices)
+                     + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in box.faces))
+    result = bench([tmp_path], repeats=1)
+    assert result["meshes"] == 2 and result["triangles"] == 24 and result["repair"]["repaired"] == 2
+    assert result["read"]["read_by_numpy"] == 1 and result["read"]["same_arrays_as_trimesh"]
+    assert result["edge_count"]["same_edge_ids_and_counts"]
+
+    exact = phirie_jax.io.mesh.read_asset_obj
+
+    def rounded(path):
+        arrays = exact(path)
+        return None if arrays is None else (np.nextafter(arrays[0], np.inf), arrays[1])
+
+    monkeypatch.setattr(phirie_jax.io.mesh, "read_asset_obj", rounded)
+    assert not bench([tmp_path], repeats=1)["read"]["same_arrays_as_trimesh"]
