@@ -7,8 +7,10 @@ For each way, a child process renders the report's images twice: the first pass 
 renderer's compiles (and the environment's scene composition), the second is the run alone.
 ``shared`` is ``report.renders.render_images`` (every image at the views' size, the capture padded
 to the converted scene's Gaussian count); ``separate`` renders the same images with thumbnails at
-their own size and the capture in its own bucket. JSON: wall seconds per pass, compiles, images,
-images per second of the warm pass, and the ratio of the cold passes.
+their own size and the capture in its own bucket. JSON: wall seconds per pass, the cold pass's
+render programs and its programs of any kind (eager joins and paddings of a new size included)
+with their compile seconds, images, images per second of the warm pass, and the ratio of the
+cold passes.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ def _separate(out_dir: Path, views: int, width: int, thumbnail: int) -> int:
 
 
 def _child(out_dir: Path, way: str, views: int, width: int, thumbnail: int) -> dict:
+    from phirie_jax.compile_count import CompileCount
     from phirie_jax.render import TRACE_COUNTS
     from phirie_jax.report.renders import render_images
 
@@ -67,11 +70,13 @@ def _child(out_dir: Path, way: str, views: int, width: int, thumbnail: int) -> d
             count = _separate(out_dir, views, width, thumbnail)
         return time.perf_counter() - start, count
 
-    cold_s, count = once()
+    with CompileCount() as compiles:
+        cold_s, count = once()
     traces = TRACE_COUNTS["render"]
     warm_s, _ = once()
     return {"way": way, "images": count, "cold_s": round(cold_s, 3), "warm_s": round(warm_s, 3),
-            "render_programs_compiled": traces, "images_per_s_warm": round(count / warm_s, 2)}
+            "render_programs_compiled": traces, "programs_compiled": compiles.count,
+            "compile_s": round(compiles.seconds, 3), "images_per_s_warm": round(count / warm_s, 2)}
 
 
 def main() -> None:
