@@ -3,6 +3,7 @@
 For loops whose bodies spend their time in code that lets go of the interpreter (NumPy's
 sorts and arithmetic, OpenCV, SciPy): one view, one photo at a time. The results are those of
 the plain loop, in the same order; an exception in a piece is raised as the loop would raise it.
+SciPy's own split of a nearest-neighbour query over the cores is chosen by ``query_workers``.
 """
 
 from __future__ import annotations
@@ -14,6 +15,17 @@ from typing import TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+# points: a nearest-neighbour query of fewer runs on one thread. A few thousand points take
+# milliseconds; split over 16 threads beside busy cores (the CoACD workers run during the
+# background stage) the query waits for its slowest thread's start.
+SMALL_QUERY = 50_000
+
+
+def query_workers(count: int) -> int:
+    """SciPy's ``workers`` for a query of ``count`` points: every core (-1), or one thread for a
+    query below ``SMALL_QUERY``."""
+    return -1 if count >= SMALL_QUERY else 1
 
 
 def map_on_cores(fn: Callable[[T], R], items: Iterable[T], name: str = "host work", workers: int = 0) -> list[R]:

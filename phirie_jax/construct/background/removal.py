@@ -55,6 +55,7 @@ from phirie_jax.io.ply import read_gaussian_ply
 from phirie_jax.layout import resolve
 from phirie_jax.observe.raycast import Raycaster
 from phirie_jax.records import InstanceRecord, ObjectRecord
+from phirie_jax.threads import query_workers
 from phirie_jax.types import Camera, GaussianSplatData
 
 DEPTH_ALPHA = 0.5  # rendered alpha below this at a pixel: nothing of the object there to occlude
@@ -118,7 +119,7 @@ def near_points(means: np.ndarray, points: np.ndarray, radius: float, index: Box
         return np.zeros(0, np.int64)
     box = np.stack([points.min(0) - radius, points.max(0) + radius])
     idx = _in_box(means, box, index)
-    d, _ = cKDTree(points).query(means[idx], distance_upper_bound=radius, workers=-1)
+    d, _ = cKDTree(points).query(means[idx], distance_upper_bound=radius, workers=query_workers(len(idx)))
     return idx[np.isfinite(d) & (d <= radius)]
 
 
