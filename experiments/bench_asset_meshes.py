@@ -110,6 +110,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    if args.repeats < 1:
+        parser.error(f"--repeats: at least 1 timed pass, got {args.repeats}")
     emit(bench(args.folders, args.repeats), args.out)
 
 
