@@ -17,8 +17,9 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 # points: a nearest-neighbour query of fewer runs on one thread. A few thousand points take
-# milliseconds; split over 16 threads beside busy cores (the CoACD workers run during the
-# background stage) the query waits for its slowest thread's start.
+# milliseconds, and split over cores that other processes keep busy (the CoACD workers beside the
+# background stage) they took 1.7x longer than on one thread (docs/performance.md, the removal's
+# queries on crowded; measured on 2 cores, not on the 16-core GPU host).
 SMALL_QUERY = 50_000
 
 
